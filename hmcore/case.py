@@ -1,0 +1,236 @@
+"""A case: base deck + measured well history + parameter space (+ misfit/simulator settings).
+
+Read from TOML and validated with pydantic; every problem in the file, the deck and the
+observed history is collected and raised together as one :class:`CaseError`::
+
+    [case]
+    name = "punqs3"
+    deck = "PUNQS3.DATA"              # relative to this file, or absolute
+    observed = "observed.csv"
+    time_tolerance_days = 30          # default 30
+    history_end_days = 2936           # optional: later rows are held back from fitting
+
+    [misfit]                          # optional
+    variant = "mean"                  # or "robust": mean + robust_lambda * worst well-response
+    robust_lambda = 0.5
+
+    [simulator]                       # optional
+    backend = "opm"                   # or a command template: "flow {deck} --output-dir={run_dir}"
+    timeout_s = 900
+
+    [physics]                         # optional
+    perm_cap_md = 20000
+    failure_penalty = 10.0
+
+    [[parameters]]                    # optional; default: the five reference parameters
+    name = "permx_mult"
+    kind = "multiply"
+    keywords = ["PERMX"]
+    low = 0.3
+    high = 3.0
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import pandas as pd
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from hmcore.deck_info import DeckInfo
+from hmcore.errors import CaseError, Problem
+from hmcore.observed import read_observed
+from hmcore.parameters import Parameter, ParameterSpace, reference_parameters
+
+BUILTIN_CASES = ("synthetic",)
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class CaseSection(_Strict):
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    deck: str
+    observed: str
+    time_tolerance_days: float = Field(default=30.0, gt=0)
+    history_end_days: float | None = Field(default=None, gt=0)
+
+
+class MisfitSettings(_Strict):
+    variant: Literal["mean", "robust"] = "mean"
+    robust_lambda: float = Field(default=0.5, ge=0)
+
+
+class SimulatorSettings(_Strict):
+    backend: str = "opm"
+    timeout_s: float = Field(default=900.0, gt=0)
+
+
+class PhysicsSettings(_Strict):
+    perm_cap_md: float = Field(default=20000.0, gt=0)
+    poro_max: float = Field(default=0.6, gt=0, le=1)
+    failure_penalty: float = Field(default=10.0, gt=0)
+    violation_weight: float = Field(default=5.0, gt=0)
+
+
+class CaseFile(_Strict):
+    case: CaseSection
+    misfit: MisfitSettings = MisfitSettings()
+    simulator: SimulatorSettings = SimulatorSettings()
+    physics: PhysicsSettings = PhysicsSettings()
+    parameters: tuple[Parameter, ...] | None = None
+
+
+@dataclass(frozen=True)
+class Case:
+    """A validated case, ready to evaluate."""
+
+    name: str
+    source: Path
+    deck: Path
+    observed_path: Path
+    observed: pd.DataFrame
+    space: ParameterSpace
+    info: DeckInfo
+    time_tolerance_days: float
+    history_end_days: float | None
+    misfit: MisfitSettings
+    simulator: SimulatorSettings
+    physics: PhysicsSettings
+
+    @property
+    def fit_observed(self) -> pd.DataFrame:
+        """Rows used for fitting (days <= history_end_days when set)."""
+        if self.history_end_days is None:
+            return self.observed
+        return self.observed[self.observed.days <= self.history_end_days]
+
+    @property
+    def heldout_observed(self) -> pd.DataFrame:
+        """Rows held back from fitting (empty when history_end_days is not set)."""
+        if self.history_end_days is None:
+            return self.observed.iloc[0:0]
+        return self.observed[self.observed.days > self.history_end_days]
+
+    def with_space(self, space: ParameterSpace) -> "Case":
+        """The same case with another parameter space (checked against the deck)."""
+        problems = _check_parameters(space.parameters, self.info, str(self.source))
+        if problems:
+            raise CaseError(problems)
+        return Case(**{**self.__dict__, "space": space})
+
+
+def resolve_case_path(case: str | Path) -> Path:
+    """A TOML path as given, or the built-in case name ``synthetic`` (generated on first use)."""
+    if str(case) == "synthetic":
+        from hmcore.synthetic import ensure_synthetic_case
+
+        return ensure_synthetic_case()
+    return Path(case)
+
+
+def load_case(case: str | Path) -> Case:
+    """Load and validate a case; raise CaseError with every problem found."""
+    path = resolve_case_path(case).resolve()
+    if not path.is_file():
+        raise CaseError([Problem(str(path), "case file not found",
+                                 f"give a TOML path or one of the built-in cases {BUILTIN_CASES}")])
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise CaseError([Problem(str(path), f"invalid TOML: {exc}",
+                                 "fix the syntax at the line and column named")]) from exc
+    try:
+        cfg = CaseFile.model_validate(data)
+    except ValidationError as exc:
+        raise CaseError([Problem(f"{path} key '{'.'.join(str(x) for x in err['loc'])}'",
+                                 err["msg"], _hint(err)) for err in exc.errors()]) from exc
+    problems: list[Problem] = []
+    deck = _relative_to(path, cfg.case.deck)
+    observed_path = _relative_to(path, cfg.case.observed)
+    info = observed = None
+    try:
+        info = DeckInfo.inspect(deck)
+    except CaseError as exc:
+        problems.extend(exc.problems)
+    try:
+        observed = read_observed(observed_path)
+    except CaseError as exc:
+        problems.extend(exc.problems)
+    params = cfg.parameters if cfg.parameters is not None else reference_parameters()
+    if info is not None:
+        problems.extend(_check_parameters(params, info, f"{path} [[parameters]]"))
+    if info is not None and observed is not None:
+        problems.extend(_check_observed_against_deck(observed, info, observed_path))
+    if (info is not None and cfg.case.history_end_days is not None
+            and cfg.case.history_end_days > info.end_days):
+        problems.append(Problem(f"{path} key 'case.history_end_days'",
+                                f"history_end_days={cfg.case.history_end_days} is after the end "
+                                f"of the schedule ({info.end_days} days)",
+                                "use a day within the schedule or remove the key"))
+    if problems:
+        raise CaseError(problems)
+    return Case(cfg.case.name, path, deck.resolve(), observed_path.resolve(), observed,
+                ParameterSpace(parameters=tuple(params)), info, cfg.case.time_tolerance_days,
+                cfg.case.history_end_days, cfg.misfit, cfg.simulator, cfg.physics)
+
+
+def _relative_to(case_file: Path, value: str) -> Path:
+    p = Path(value).expanduser()
+    return p if p.is_absolute() else (case_file.parent / p)
+
+
+def _hint(err: dict) -> str:
+    if err.get("type") == "extra_forbidden":
+        return "remove the key or check its spelling"
+    if err.get("type") == "missing":
+        return "add the key"
+    return "see the rule stated above"
+
+
+def _check_parameters(params, info: DeckInfo, where: str) -> list[Problem]:
+    problems = []
+    nx, ny, nz = info.dims
+    for p in params:
+        unknown = [w for w in p.wells if w not in info.wells]
+        if unknown:
+            problems.append(Problem(f"{where} '{p.name}'", f"unknown well(s) {unknown}",
+                                    f"the deck's wells are {sorted(info.wells)}"))
+        bad_layers = [k for k in p.layers if not 1 <= k <= nz]
+        if bad_layers:
+            problems.append(Problem(f"{where} '{p.name}'", f"layer(s) {bad_layers} outside 1..{nz}",
+                                    "layers are 1-based k indices"))
+        if p.box is not None:
+            i1, i2, j1, j2, k1, k2 = p.box
+            if i2 > nx or j2 > ny or k2 > nz:
+                problems.append(Problem(f"{where} '{p.name}'", f"box {p.box} outside the grid "
+                                        f"{nx}x{ny}x{nz}", "use 1-based indices inside the grid"))
+        for kw in p.keywords:
+            if kw.upper() in ("PORO", "PERMX", "PERMY", "PERMZ", "NTG") and \
+                    kw.upper() not in info.properties:
+                problems.append(Problem(f"{where} '{p.name}'", f"the deck defines no {kw}",
+                                        "multiply a keyword the GRID section defines"))
+    return problems
+
+
+def _check_observed_against_deck(obs: pd.DataFrame, info: DeckInfo, path: Path) -> list[Problem]:
+    problems = []
+    measured = obs[~obs.derived]
+    for well, grp in measured[~measured.well.isin(list(info.wells))].groupby("well"):
+        problems.append(Problem(f"{path} lines {_lines(grp)}", f"unknown well '{well}'",
+                                f"the deck's wells are {sorted(info.wells)}"))
+    late = measured[measured.days > info.end_days + 1e-6]
+    if not late.empty:
+        problems.append(Problem(f"{path} lines {_lines(late)}",
+                                f"days {sorted(set(late.days))[:5]} after the end of the schedule "
+                                f"({info.end_days} days)", "drop those rows or extend the deck"))
+    return problems
+
+
+def _lines(df: pd.DataFrame, most: int = 8) -> str:
+    lines = [int(x) for x in df.line]
+    return ", ".join(map(str, lines[:most])) + (f" (+{len(lines) - most} more)" if len(lines) > most else "")

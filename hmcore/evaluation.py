@@ -1,0 +1,130 @@
+"""One evaluation: parameter values -> per-run deck -> simulator -> responses -> score.
+
+States follow Optuna's trials: ``COMPLETE`` (scored), ``INVALID`` (simulated and scored but
+physically invalid: penalised, never best), ``FAIL`` (no usable result: the reason is recorded,
+``E`` is NaN, never an invented score). ``reward = -E - P`` for scored runs and
+``-failure_penalty - P`` for failures, so a learning agent always gets a finite signal.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import pandas as pd
+
+from hmcore.alignment import align
+from hmcore.case import Case
+from hmcore.deck import prepare_run_deck
+from hmcore.errors import SimulationError
+from hmcore.metrics import compute_metrics
+from hmcore.misfit import category_ranges, misfit
+from hmcore.physics import check_physics
+from hmcore.responses import last_time, read_responses
+from hmcore.simulator import Simulator, make_simulator
+
+
+class Status(str, Enum):
+    COMPLETE = "COMPLETE"
+    INVALID = "INVALID"
+    FAIL = "FAIL"
+
+
+@dataclass
+class Evaluation:
+    """Everything one simulator call produced (serialisable with :meth:`to_record`)."""
+
+    params: dict[str, float]
+    status: Status
+    E: float
+    penalty: float
+    reward: float
+    per_response: dict[str, float] = field(default_factory=dict)
+    coverage: float = float("nan")
+    wall_time_s: float = 0.0
+    sim_time_s: float = 0.0
+    run_dir: str = ""
+    reason: str = ""
+    violations: tuple[str, ...] = ()
+    E_heldout: float = float("nan")
+    metrics: dict = field(default_factory=dict)
+    heldout_metrics: dict = field(default_factory=dict)
+    responses: pd.DataFrame | None = field(default=None, repr=False)
+
+    @property
+    def selectable(self) -> bool:
+        """Only complete, valid, finite runs may ever be called best."""
+        return self.status is Status.COMPLETE and math.isfinite(self.E)
+
+    def to_record(self) -> dict:
+        """Flat JSON-friendly record (no responses table)."""
+        rec = asdict(self)
+        rec.pop("responses")
+        rec["status"] = self.status.value
+        rec["violations"] = list(self.violations)
+        return rec
+
+
+def score_responses(case: Case, responses: pd.DataFrame) -> dict:
+    """Misfit and metrics of simulated ``responses`` against the case's history.
+
+    Returns E, per_response, coverage and metrics on the fitted part, and E_heldout with
+    heldout metrics on the held-back part (NaN/empty when nothing is held back).
+    """
+    ranges = category_ranges(case.observed)
+    fit = align(case.fit_observed, responses, case.time_tolerance_days)
+    m = misfit(fit.pairs, case.misfit.variant, case.misfit.robust_lambda, ranges)
+    out = {"E": m.E, "per_response": m.per_response, "per_well_response": m.per_well_response,
+           "coverage": fit.coverage, "metrics": compute_metrics(fit.pairs),
+           "E_heldout": float("nan"), "heldout_metrics": {}, "pairs": fit.pairs}
+    held = case.heldout_observed
+    if not held.empty:
+        ha = align(held, responses, case.time_tolerance_days)
+        out["E_heldout"] = misfit(ha.pairs, case.misfit.variant, case.misfit.robust_lambda,
+                                  ranges).E
+        out["heldout_metrics"] = compute_metrics(ha.pairs)
+    return out
+
+
+def evaluate(case: Case, values: dict[str, float], run_dir: Path,
+             simulator: Simulator | None = None) -> Evaluation:
+    """Simulate ``values`` (physical units) in ``run_dir`` and score the result."""
+    start = time.perf_counter()
+    simulator = simulator or make_simulator(case.simulator.backend, case.simulator.timeout_s)
+    phys = check_physics(values, case.space, case.info, case.physics.perm_cap_md,
+                         case.physics.poro_max, case.physics.violation_weight)
+    fail_reward = -case.physics.failure_penalty - phys.penalty
+
+    def failed(reason: str, sim_time: float = 0.0) -> Evaluation:
+        return Evaluation(dict(values), Status.FAIL, float("nan"),
+                          case.physics.failure_penalty + phys.penalty, fail_reward,
+                          wall_time_s=time.perf_counter() - start, sim_time_s=sim_time,
+                          run_dir=str(run_dir), reason=reason, violations=phys.violations)
+
+    if not phys.runnable:
+        return failed("physically impossible, not simulated: " + "; ".join(phys.violations))
+    deck = prepare_run_deck(case.deck, values, case.space, Path(run_dir), case.info)
+    try:
+        result = simulator.run(deck, Path(run_dir))
+    except SimulationError as exc:
+        tail = exc.log_tail.strip().splitlines()[-1:] if exc.log_tail else []
+        return failed(f"{exc.reason}: {exc.message}" + (f" | {tail[0]}" if tail else ""),
+                      time.perf_counter() - start)
+    end = last_time(result.summary_path)
+    if end < case.info.end_days - 1e-3:
+        return failed(f"no_convergence: stopped at day {end} of {case.info.end_days}",
+                      result.wall_time_s)
+    responses = read_responses(result.summary_path, sorted(case.info.wells))
+    s = score_responses(case, responses)
+    if not math.isfinite(s["E"]):
+        return failed("no_match: no simulated record within the time tolerance of any "
+                      "observation", result.wall_time_s)
+    status = Status.COMPLETE if phys.valid else Status.INVALID
+    return Evaluation(dict(values), status, s["E"], phys.penalty, -s["E"] - phys.penalty,
+                      s["per_response"], s["coverage"], time.perf_counter() - start,
+                      result.wall_time_s, str(run_dir), "; ".join(phys.violations),
+                      phys.violations, s["E_heldout"], s["metrics"], s["heldout_metrics"],
+                      responses)
