@@ -64,8 +64,9 @@ def compute_metrics(pairs: pd.DataFrame) -> dict:
 
 def category_table(metrics: dict) -> pd.DataFrame:
     """The paper's category table: rows oil, water, gas, bhp, gor, wct, macro."""
-    rows = [{"category": c, "N": m["n"], "NMSE": m["nmse"], "R2": m["r2"], "C_match": m["cmatch"]}
-            for c, m in metrics["categories"].items()]
+    cats = metrics["categories"]
+    rows = [{"category": c, "N": cats[c]["n"], "NMSE": cats[c]["nmse"], "R2": cats[c]["r2"],
+             "C_match": cats[c]["cmatch"]} for c in CATEGORIES if c in cats]
     mac = metrics["macro"]
     rows.append({"category": "macro (oil, water, gas, bhp)",
                  "N": sum(metrics["categories"][c]["n"] for c in PRIMARY),
@@ -76,7 +77,14 @@ def category_table(metrics: dict) -> pd.DataFrame:
 def well_table(metrics: dict) -> pd.DataFrame:
     """The paper's well x response table of C_match (%)."""
     rows = []
-    for well, cats in metrics["wells"].items():
+    for well, cats in sorted(metrics["wells"].items(), key=lambda kv: _natural(kv[0])):
         rows.append({"well": well, **{c: cats.get(c, {}).get("cmatch", float("nan"))
                                       for c in CATEGORIES}})
     return pd.DataFrame(rows, columns=["well", *CATEGORIES])
+
+
+def _natural(name: str) -> tuple:
+    """Sort key so that PRO-4 comes before PRO-11."""
+    import re
+
+    return tuple(int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name))

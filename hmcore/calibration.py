@@ -1,0 +1,78 @@
+"""The calibration loop: ask a proposer for W actions, evaluate them together, tell the results.
+
+The loop never runs the simulator itself: ``evaluate_batch(jobs) -> records`` is injected (the
+Prefect flow submits one task per job to a task runner; tests pass a plain function). Records
+already in ``done`` (a resumed campaign's journal) are replayed to the proposer instead of being
+simulated again. The last call of the budget evaluates the proposer's recommendation (for SAC,
+the deterministic policy), so the campaign ends on what the agent learned, not only on samples.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from hmcore.agents.base import Feedback, Proposal, Proposer
+from hmcore.parameters import ParameterSpace
+
+
+@dataclass(frozen=True)
+class Job:
+    """One simulator call to make: call index, physical values and the action behind them."""
+
+    index: int
+    values: dict[str, float]
+    action: tuple[float, ...]
+    lane: int
+    phase: str  # "explore" (sampled) or "exploit" (the proposer's recommendation)
+
+
+def feedback_of(record: dict) -> Feedback:
+    """Reward and observed E (E, or the penalty of a failed run) from an evaluation record."""
+    E = record.get("E")
+    e_obs = E if E is not None and math.isfinite(E) else record["penalty"]
+    return Feedback(float(record["reward"]), float(e_obs))
+
+
+def calibrate(proposer: Proposer, space: ParameterSpace,
+              evaluate_batch: Callable[[list[Job]], list[dict]], budget: int, workers: int,
+              done: dict[int, dict] | None = None, exploit_last: bool = True) -> list[dict]:
+    """Run ``budget`` simulator calls, ``workers`` at a time; return every record in call order.
+
+    Each record must carry ``reward``, ``E`` (NaN/None for failures) and ``penalty``.
+    """
+    if budget < 1 or workers < 1:
+        raise ValueError(f"budget >= 1 and workers >= 1 must hold, got budget={budget}, "
+                         f"workers={workers}")
+    done = dict(done or {})
+    records: list[dict] = []
+    index = 0
+    while index < budget:
+        n = min(workers, budget - index)
+        proposals = proposer.ask(n)
+        phases = ["explore"] * n
+        if exploit_last and index + n == budget:
+            proposals[0] = Proposal(np.asarray(proposer.recommend(), np.float32),
+                                    proposals[0].observation, proposals[0].lane)
+            phases[0] = "exploit"
+        jobs = [Job(index + k, space.to_values(p.action), tuple(float(x) for x in p.action),
+                    p.lane, phases[k]) for k, p in enumerate(proposals)]
+        todo = [j for j in jobs if j.index not in done]
+        fresh = {r["index"]: r for r in (evaluate_batch(todo) if todo else [])}
+        batch = [done.get(j.index) or fresh[j.index] for j in jobs]
+        told = [Proposal(np.asarray(r["action"], np.float32), p.observation, p.lane)
+                for r, p in zip(batch, proposals)]
+        proposer.tell(told, [feedback_of(r) for r in batch])
+        records.extend(batch)
+        index += n
+    return records
+
+
+def best_record(records: list[dict]) -> dict | None:
+    """The lowest-E record among COMPLETE ones (never INVALID or FAIL); None when none."""
+    ok = [r for r in records if r.get("status") == "COMPLETE" and r.get("E") is not None
+          and math.isfinite(r["E"])]
+    return min(ok, key=lambda r: r["E"]) if ok else None

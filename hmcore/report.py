@@ -1,0 +1,142 @@
+"""Plain-text renderings of results: the paper's two tables as Markdown, metrics as JSON.
+
+Nothing here runs a simulator; everything is rebuilt from stored metrics.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from hmcore.metrics import category_table, well_table
+
+
+def _fmt(v: Any, digits: int = 4) -> str:
+    if isinstance(v, (float, np.floating)):
+        return "n/a" if not math.isfinite(v) else f"{v:.{digits}g}" if abs(v) < 1e-3 else f"{v:.{digits}f}"
+    return str(v)
+
+
+def markdown_table(df: pd.DataFrame, digits: int = 4) -> str:
+    head = "| " + " | ".join(map(str, df.columns)) + " |"
+    sep = "|" + "|".join("---" for _ in df.columns) + "|"
+    rows = ["| " + " | ".join(_fmt(v, digits) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join([head, sep, *rows])
+
+
+def metrics_markdown(metrics: dict, title: str = "Match quality") -> str:
+    return (f"### {title}: categories\n\n{markdown_table(category_table(metrics))}\n\n"
+            f"### {title}: C_match (%) per well and response\n\n"
+            f"{markdown_table(well_table(metrics), 2)}\n")
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Numpy scalars -> Python; NaN/inf -> None (JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if hasattr(obj, "value") and hasattr(obj, "name"):  # Enum
+        return obj.value
+    return obj
+
+
+def dumps(obj: Any) -> str:
+    return json.dumps(to_jsonable(obj), indent=2, sort_keys=False)
+
+
+def metrics_document(ev) -> dict:
+    """The ``metrics.json`` document of one evaluation (see hmcore.evaluation.Evaluation)."""
+    m = ev.metrics or {"macro": {}, "categories": {}, "wells": {}}
+    doc = {
+        "status": ev.status.value if hasattr(ev.status, "value") else ev.status,
+        "reason": ev.reason,
+        "params": ev.params,
+        "macro": m.get("macro", {}),
+        "categories": m.get("categories", {}),
+        "wells": m.get("wells", {}),
+        "misfit": {"E": ev.E, "penalty": ev.penalty, "reward": ev.reward,
+                   "per_response": ev.per_response, "coverage": ev.coverage,
+                   "E_heldout": ev.E_heldout},
+        "heldout": ev.heldout_metrics,
+        "run_dir": ev.run_dir,
+        "sim_time_s": ev.sim_time_s,
+        "wall_time_s": ev.wall_time_s,
+    }
+    return to_jsonable(doc)
+
+
+def parameter_distance(found: dict[str, float], truth: dict[str, float],
+                       bounds: dict[str, tuple[float, float]]) -> dict:
+    """Per-parameter error and the error as a fraction of the parameter's range."""
+    out = {}
+    for name, t in truth.items():
+        if name in found and name in bounds:
+            lo, hi = bounds[name]
+            out[name] = {"found": found[name], "truth": t, "error": found[name] - t,
+                         "error_of_range": abs(found[name] - t) / (hi - lo)}
+    return out
+
+
+def build_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: dict | None,
+                 truth: dict[str, float] | None) -> tuple[str, dict]:
+    """Markdown report and its JSON twin from stored results (no simulator involved)."""
+    n = len(table)
+    counts = table["status"].value_counts().to_dict() if n else {}
+    lines = [f"# hmflow campaign `{campaign}`", "",
+             f"Case **{case_doc['name']}** ({case_doc['source']}); {n} simulator calls: "
+             + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) + ".", ""]
+    doc: dict = {"campaign": campaign, "case": case_doc["name"], "calls": n,
+                 "status_counts": counts, "best": None}
+    fails = table[table["status"] == "FAIL"]
+    if not fails.empty:
+        reasons = fails["reason"].fillna("").str.split(":").str[0].value_counts().to_dict()
+        lines += [f"Failed calls by reason: {reasons}.", ""]
+        doc["failure_reasons"] = reasons
+    if best is None:
+        lines += ["No valid simulation: nothing can be called best."]
+        return "\n".join(lines) + "\n", to_jsonable(doc)
+    params = best["params"]
+    lines += [f"## Best case: call {best['index']} (E = {_fmt(best['E'], 6)})", "",
+              "| parameter | value |", "|---|---|"]
+    lines += [f"| {k} | {_fmt(v)} |" for k, v in params.items()]
+    doc["best"] = {"index": best["index"], "E": best["E"], "params": params,
+                   "E_heldout": best.get("E_heldout"), "macro": best["metrics"].get("macro")}
+    if truth:
+        bounds = {p["name"]: (p["low"], p["high"]) for p in case_doc["parameters"]}
+        dist = parameter_distance(params, truth, bounds)
+        doc["truth_distance"] = dist
+        lines += ["", "### Distance to the known truth", "",
+                  "| parameter | found | truth | error | error / range |", "|---|---|---|---|---|"]
+        lines += [f"| {k} | {_fmt(d['found'])} | {_fmt(d['truth'])} | {_fmt(d['error'])} | "
+                  f"{_fmt(d['error_of_range'], 3)} |" for k, d in dist.items()]
+    lines += ["", metrics_markdown(best["metrics"], "Fitted history")]
+    cat = category_table(best["metrics"])
+    wells = well_table(best["metrics"])
+    doc["category_table"] = to_jsonable(cat.to_dict(orient="records"))
+    doc["well_table"] = to_jsonable(wells.to_dict(orient="records"))
+    if best.get("heldout_metrics") and best["heldout_metrics"].get("categories"):
+        lines += [f"Held-back history (after day {case_doc.get('history_end_days')}): "
+                  f"E = {_fmt(best.get('E_heldout'), 6)}", "",
+                  metrics_markdown(best["heldout_metrics"], "Held-back history")]
+        doc["heldout_category_table"] = to_jsonable(
+            category_table(best["heldout_metrics"]).to_dict(orient="records"))
+    if n:
+        trace = table[["index", "best_E_so_far"]].dropna()
+        marks = sorted({max(1, n // 4), max(1, n // 2), max(1, 3 * n // 4), n})
+        lines += ["### Convergence", "", "| calls | best E so far |", "|---|---|"]
+        for m in marks:
+            sub = trace[trace["index"] < m]
+            lines.append(f"| {m} | {_fmt(sub['best_E_so_far'].iloc[-1], 6) if len(sub) else 'n/a'} |")
+        doc["time"] = {"sim_time_s_total": float(table["sim_time_s"].sum()),
+                       "wall_time_s_total": float(table["wall_time_s"].sum())}
+    return "\n".join(lines) + "\n", to_jsonable(doc)

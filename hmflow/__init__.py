@@ -1,0 +1,1 @@
+"""hmflow: batch history-matching campaigns (the application layer: CLI)."""

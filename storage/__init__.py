@@ -1,0 +1,21 @@
+"""Versioned artifact store (Parquet + manifests) and the evaluation journal of campaigns.
+
+A plain library: it imports neither Prefect nor hmcore/tasks/flows.
+"""
+
+from .journal import EvaluationJournal, JournalConflictError
+from .jsonable import canonical_json, sha256_json, to_jsonable
+from .provenance import code_version
+from .store import ArtifactStore, ArtifactVersion, validate_name
+
+__all__ = [
+    "ArtifactStore",
+    "ArtifactVersion",
+    "EvaluationJournal",
+    "JournalConflictError",
+    "canonical_json",
+    "code_version",
+    "sha256_json",
+    "to_jsonable",
+    "validate_name",
+]

@@ -1,0 +1,55 @@
+"""Deck preparation: validate the case and store what it was (hashes, settings, parameters)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+from prefect import task
+from prefect.cache_policies import NO_CACHE
+
+from hmcore.case import Case, load_case
+from hmcore.deck import prepare_run_deck
+from hmcore.report import to_jsonable
+from storage import ArtifactStore, ArtifactVersion, code_version
+
+
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def case_fingerprint(case: Case) -> dict:
+    """What identifies a case's inputs: hashes of the case file, deck, includes and history."""
+    includes = sorted({str(p) for p in Path(case.deck).parent.glob("*") if p.is_file()
+                       and p.suffix.upper() not in (".CSV", ".TOML", ".JSON")})
+    return {"case_file": file_sha256(case.source), "deck": file_sha256(case.deck),
+            "deck_dir_files": {Path(p).name: file_sha256(Path(p)) for p in includes},
+            "observed": file_sha256(case.observed_path)}
+
+
+@task(name="validate-case", cache_policy=NO_CACHE)
+def validate_case(case_ref: str) -> Case:
+    """Load and validate the case (deck, history, parameters); no simulator time is spent."""
+    return load_case(case_ref)
+
+
+@task(name="prepare-deck", cache_policy=NO_CACHE)
+def prepare_deck(case: Case, case_ref: str, store_root: str, campaign: str) -> ArtifactVersion:
+    """Store the case as run: neutral per-run deck, case file, history, settings and hashes."""
+    store = ArtifactStore(store_root)
+
+    def write(directory: Path) -> None:
+        prepare_run_deck(case.deck, {}, case.space, directory / "deck", case.info)
+        (directory / "case.toml").write_bytes(case.source.read_bytes())
+        case.observed.to_parquet(directory / "observed.parquet", index=False)
+        (directory / "case.json").write_text(json.dumps(to_jsonable({
+            "name": case.name, "source": str(case.source), "deck": str(case.deck),
+            "observed": str(case.observed_path), "parameters": [p.model_dump() for p in case.space.parameters],
+            "time_tolerance_days": case.time_tolerance_days, "history_end_days": case.history_end_days,
+            "misfit": case.misfit.model_dump(), "simulator": case.simulator.model_dump(),
+            "physics": case.physics.model_dump(), "wells": sorted(case.info.wells),
+            "dims": case.info.dims, "end_days": case.info.end_days}), indent=2))
+
+    return store.put(campaign, "case", {"case": case_ref, **case_fingerprint(case)}, write,
+                     code_version())

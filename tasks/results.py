@@ -1,0 +1,89 @@
+"""Consolidation, best-case archive and report tasks (versioned artifacts; no simulator)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+from prefect import task
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
+from prefect.cache_policies import NO_CACHE
+
+from hmcore.calibration import best_record
+from hmcore.report import build_report, to_jsonable
+from hmcore.results import results_table
+from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version, sha256_json
+
+SUMMARY_SUFFIXES = (".SMSPEC", ".UNSMRY", ".DATA", ".LOG", ".PRT", ".INIT", ".EGRID")
+
+
+@task(name="consolidate-results", cache_policy=NO_CACHE)
+def consolidate(store_root: str, campaign: str, parameter_names: list[str]) -> ArtifactVersion:
+    """Every journaled evaluation -> ``results/vN/evaluations.parquet`` (+ records JSON)."""
+    store = ArtifactStore(store_root)
+    rows = EvaluationJournal(store, campaign).rows()
+    table = results_table(rows, parameter_names)
+    return store.put_files(campaign, "results", {"journal": sha256_json(rows),
+                                                 "parameters": parameter_names},
+                           {"evaluations.parquet": table, "records.json": {"records": rows}},
+                           code_version())
+
+
+@task(name="archive-best-case", cache_policy=NO_CACHE)
+def archive_best(store_root: str, campaign: str, results: ArtifactVersion) -> ArtifactVersion | None:
+    """Copy the best valid run (deck, summary files, parameters, metrics) into ``best/vN``."""
+    store = ArtifactStore(store_root)
+    records = results.read_json("records.json")["records"]
+    best = best_record(records)
+    if best is None:
+        return None
+    run_dir = Path(best["run_dir"])
+
+    def write(directory: Path) -> None:
+        for f in sorted(run_dir.iterdir()):
+            if f.is_file() and (f.suffix.upper() in SUMMARY_SUFFIXES or f.name == "simulator.log"):
+                shutil.copy2(f, directory / f.name)
+        (directory / "params.json").write_text(json.dumps(best["params"], indent=2))
+        (directory / "metrics.json").write_text(json.dumps(to_jsonable(best), indent=2))
+
+    return store.put(campaign, "best", {"results": results.ref(), "index": best["index"]}, write,
+                     code_version())
+
+
+@task(name="build-report", cache_policy=NO_CACHE)
+def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = True) -> ArtifactVersion:
+    """Rebuild the report from stored artifacts only (zero simulator calls)."""
+    store = ArtifactStore(store_root)
+    results = store.latest(campaign, "results")
+    case = store.latest(campaign, "case")
+    if results is None or case is None:
+        raise FileNotFoundError(f"campaign '{campaign}' in {store_root} has no stored results; "
+                                "run the campaign first (hmflow run)")
+    best = store.latest(campaign, "best")
+    case_doc = case.read_json("case.json")
+    table = results.read_parquet("evaluations.parquet")
+    best_doc = best.read_json("metrics.json") if best else None
+    truth = _truth_for(case_doc)
+    markdown, doc = build_report(campaign, case_doc, table, best_doc, truth)
+    inputs = {"results": results.ref(), "case": case.ref(), "best": best.ref() if best else None}
+    version = store.put_files(campaign, "report", inputs,
+                              {"report.md": markdown, "report.json": doc}, code_version())
+    if publish_prefect_artifacts:
+        key = "".join(ch if ch.isalnum() else "-" for ch in campaign.lower())
+        create_markdown_artifact(markdown, key=f"{key}-report", description=f"hmflow report {campaign}")
+        if doc.get("category_table"):
+            create_table_artifact(doc["category_table"], key=f"{key}-categories",
+                                  description="match by category (best case)")
+        if doc.get("well_table"):
+            create_table_artifact(doc["well_table"], key=f"{key}-wells",
+                                  description="C_match (%) per well and response (best case)")
+    return version
+
+
+def _truth_for(case_doc: dict) -> dict | None:
+    """Known true parameters (synthetic cases ship truth.json beside case.toml)."""
+    path = Path(case_doc["source"]).parent / "truth.json"
+    if path.is_file():
+        return json.loads(path.read_text()).get("parameters")
+    return None
