@@ -39,8 +39,8 @@ class CaseError(ValueError):
 class SimulationError(RuntimeError):
     """A simulation that did not produce usable results.
 
-    ``reason`` is one of ``parse_error``, ``timeout``, ``crash``, ``no_convergence``,
-    ``no_output``; ``log_tail`` holds the end of the simulator's stderr/log.
+    ``reason`` is one of ``parse_error``, ``timeout``, ``killed`` (by a signal), ``crash``,
+    ``no_convergence``, ``no_output``; ``log_tail`` holds the end of the simulator's stderr/log.
     """
 
     reason: str

@@ -50,7 +50,12 @@ def _tail(text: str) -> str:
 
 
 def _run_process(cmd: list[str], deck: Path, run_dir: Path, timeout_s: float, backend: str,
-                 log_name: str) -> SimulationResult:
+                 log_name: str, exit_reasons: dict[int, str] | None = None) -> SimulationResult:
+    """Run ``cmd`` (stdout discarded, stderr to the log); map failures to SimulationError.
+
+    A negative return code (killed by a signal, e.g. out of memory) is ``killed``; other
+    non-zero codes are looked up in ``exit_reasons`` and default to ``crash``.
+    """
     run_dir.mkdir(parents=True, exist_ok=True)
     log_path = run_dir / log_name
     start = time.perf_counter()
@@ -65,9 +70,8 @@ def _run_process(cmd: list[str], deck: Path, run_dir: Path, timeout_s: float, ba
     wall = time.perf_counter() - start
     log_text = log_path.read_text(errors="replace")
     if proc.returncode != 0:
-        reason = {2: "parse_error", 3: "no_convergence"}.get(proc.returncode, "crash")
-        if "parse" in log_text.lower() or "keyword" in log_text.lower() and reason == "crash":
-            reason = "parse_error"
+        reason = ("killed" if proc.returncode < 0
+                  else (exit_reasons or {}).get(proc.returncode, "crash"))
         raise SimulationError(reason, f"{backend} exited with code {proc.returncode}", run_dir,
                               _tail(log_text))
     summary = run_dir / f"{deck.stem.upper()}.SMSPEC"
@@ -90,7 +94,8 @@ class OpmFlow:
 
     def run(self, deck: Path, run_dir: Path) -> SimulationResult:
         cmd = [sys.executable, "-m", "hmcore.opm_runner", str(deck), str(run_dir), *self.extra_args]
-        return _run_process(cmd, deck, run_dir, self.timeout_s, self.name, "simulator.log")
+        return _run_process(cmd, deck, run_dir, self.timeout_s, self.name, "simulator.log",
+                            {2: "parse_error", 3: "no_convergence"})
 
 
 @dataclass(frozen=True)

@@ -145,6 +145,130 @@ def evaluate(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         raise typer.Exit(1)
 
 
+def _progress_watcher(storage: Path, campaign_hint: str | None, budget: int, stop):
+    """Poll the campaign journal and drive a progress bar (calls / budget, best E, ETA)."""
+    import time
+
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from storage import ArtifactStore, EvaluationJournal
+
+    store = ArtifactStore(storage)
+    with Progress(TextColumn("[bold]calls"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                  TextColumn("best E {task.fields[best]}"), TimeElapsedColumn(), TextColumn("ETA"),
+                  TimeRemainingColumn(), console=console, transient=False) as bar:
+        task = bar.add_task("calls", total=budget, best="-")
+        while not stop.is_set():
+            names = [campaign_hint] if campaign_hint else store.campaigns()
+            rows = []
+            for name in names:
+                if name and (storage / name / "evaluations").is_dir():
+                    rows = EvaluationJournal(store, name).rows()
+            ok = [r["E"] for r in rows if r.get("status") == "COMPLETE" and r.get("E") is not None]
+            bar.update(task, completed=min(len(rows), budget),
+                       best=f"{min(ok):.5g}" if ok else "-")
+            stop.wait(1.0)
+
+
+@app.command()
+def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
+        agent: str = typer.Option("sac", "--agent", help="Proposer: sac (reference) or random"),
+        budget: int = typer.Option(200, "--budget", min=1, help="Simulator calls"),
+        workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
+        seed: int = typer.Option(0, "--seed"),
+        storage: Path = typer.Option(Path("./hmflow-storage"), "--storage", help="Artifact store"),
+        campaign: Optional[str] = typer.Option(None, "--campaign", help="Campaign name "
+                                               "(default CASE-AGENT-seedS; the same name resumes)"),
+        task_runner: str = typer.Option("threads", "--task-runner", help="threads or dask (a local "
+                                        "Dask cluster, or DASK_ADDRESS)")) -> None:
+    """Run a calibration campaign as a Prefect flow and print the best case and the tables."""
+    import threading
+
+    from flows.campaign import campaign_flow, default_campaign_name
+
+    c = _load(case)  # clear errors before any simulator time or Prefect start-up
+    name = campaign or default_campaign_name(c.name, agent, seed)
+    storage = storage.resolve()
+    console.print(f"campaign [bold]{name}[/]: case {c.name}, agent {agent}, budget {budget}, "
+                  f"workers {workers}, seed {seed}, storage {storage}")
+    flow_fn = campaign_flow.with_options(task_runner=_task_runner(task_runner, workers))
+    stop = threading.Event()
+    watcher = threading.Thread(target=_progress_watcher, args=(storage, name, budget, stop), daemon=True)
+    watcher.start()
+    try:
+        result = flow_fn(case=str(case), agent=agent, budget=budget, workers=workers, seed=seed,
+                         storage=str(storage), campaign=name)
+    except ValueError as exc:
+        stop.set()
+        watcher.join()
+        err_console.print(f"[red]x[/] {exc}")
+        raise typer.Exit(2)
+    finally:
+        stop.set()
+        watcher.join()
+    _print_report(storage, result["campaign"])
+
+
+def _task_runner(kind: str, workers: int):
+    if kind == "threads":
+        from prefect.task_runners import ThreadPoolTaskRunner
+
+        return ThreadPoolTaskRunner(max_workers=workers)
+    if kind == "dask":
+        import os
+
+        from prefect_dask import DaskTaskRunner
+
+        address = os.environ.get("DASK_ADDRESS")
+        if address:
+            return DaskTaskRunner(address=address)
+        return DaskTaskRunner(cluster_kwargs={"n_workers": workers, "threads_per_worker": 1,
+                                              "processes": True})
+    err_console.print(f"[red]x[/] --task-runner must be 'threads' or 'dask', got {kind!r}")
+    raise typer.Exit(2)
+
+
+def _print_report(storage: Path, campaign: str) -> None:
+    """Print a stored report: best parameters, distance to truth, the two tables."""
+    from storage import ArtifactStore
+
+    store = ArtifactStore(storage)
+    rep = store.latest(campaign, "report")
+    doc = rep.read_json("report.json")
+    best = doc.get("best")
+    console.print(f"\n[bold]{doc['campaign']}[/]: {doc['calls']} calls {doc['status_counts']}")
+    if not best:
+        console.print("[red]no valid simulation - nothing to call best[/]")
+    else:
+        console.print(f"best call {best['index']}: E = {best['E']:.6g}"
+                      + (f", held-back E = {best['E_heldout']:.6g}" if best.get("E_heldout") else ""))
+        for k, v in best["params"].items():
+            console.print(f"  {k:<12} = {v:.4f}")
+        for k, d in (doc.get("truth_distance") or {}).items():
+            console.print(f"  {k:<12}   truth {d['truth']:.4f}, error {d['error']:+.4f} "
+                          f"({100 * d['error_of_range']:.1f} % of range)")
+        print_tables(store.latest(campaign, "best").read_json("metrics.json")["metrics"], "Best case:")
+    console.print(f"report: {rep.file('report.md')}")
+
+
+@app.command()
+def report(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
+           campaign: str = typer.Option(..., "--campaign")) -> None:
+    """Rebuild a campaign's report from stored artifacts (zero simulator calls)."""
+    from flows.report import report_flow
+
+    if not (storage / campaign).is_dir():
+        err_console.print(f"[red]x[/] no campaign '{campaign}' in {storage}; known: "
+                          f"{sorted(p.name for p in storage.iterdir()) if storage.is_dir() else []}")
+        raise typer.Exit(2)
+    try:
+        report_flow(storage=str(storage), campaign=campaign)
+    except FileNotFoundError as exc:
+        err_console.print(f"[red]x[/] {exc}")
+        raise typer.Exit(2)
+    _print_report(storage, campaign)
+
+
 def main() -> None:  # pragma: no cover - console entry
     app()
 

@@ -14,11 +14,11 @@ from hmcore.report import to_jsonable
 from hmcore.simulator import make_simulator
 from storage import ArtifactStore, EvaluationJournal
 
-TRANSIENT_REASONS = ("timeout", "crash")
+TRANSIENT_REASONS = ("timeout", "killed")  # worth retrying; crashes and parse errors are not
 
 
 class TransientSimulationError(RuntimeError):
-    """A failure worth retrying (timeout or crash): Prefect retries only this exception."""
+    """A failure worth retrying (timeout, killed): Prefect retries only this exception."""
 
 
 def _retry_transient(task, task_run, state) -> bool:

@@ -1,0 +1,144 @@
+"""The Gymnasium environment, the ask/tell proposers and the calibration loop (no simulator)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hmcore.agents import Feedback, RandomProposer, SACProposer, SACSettings, make_proposer
+from hmcore.calibration import Job, best_record, calibrate
+from hmcore.env import HistoryMatchingEnv
+from hmcore.evaluation import Evaluation, Status
+from hmcore.parameters import ParameterSpace
+
+SPACE = ParameterSpace.reference()
+TARGET = np.array([0.3, -0.5, 0.6, -0.2, 0.1])
+
+
+def quadratic_E(action) -> float:
+    return float(np.mean((np.asarray(action) - TARGET) ** 2)) * 0.3 + 1e-3
+
+
+def fake_evaluate(values: dict[str, float]) -> Evaluation:
+    a = SPACE.to_action(values)
+    if values["skin"] > 14.0:  # a "failed run" corner
+        return Evaluation(values, Status.FAIL, float("nan"), 10.0, -10.0, reason="crash: fake")
+    E = quadratic_E(a)
+    return Evaluation(values, Status.COMPLETE, E, 0.0, -E, {"bhp": E}, 1.0, run_dir="/tmp/x")
+
+
+def test_env_passes_gymnasium_and_sb3_checkers():
+    from gymnasium.utils.env_checker import check_env as gym_check
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+
+    gym_check(HistoryMatchingEnv(SPACE, fake_evaluate), skip_render_check=True)
+    sb3_check(HistoryMatchingEnv(SPACE, fake_evaluate), warn=True)
+
+
+def test_env_step_maps_action_to_bounds_and_reports_info():
+    env = HistoryMatchingEnv(SPACE, fake_evaluate)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (SPACE.dim + 1,)
+    action = np.array([1, -1, 0, 1, -1], dtype=np.float32)
+    obs, reward, terminated, truncated, info = env.step(action)
+    assert terminated and not truncated
+    assert info["params"] == pytest.approx({"poro_mult": 1.2, "permx_mult": 0.3,
+                                            "permy_mult": 1.65, "permz_mult": 3.0, "skin": -5.0})
+    assert reward == pytest.approx(-info["E"] - info["penalty"])
+    np.testing.assert_allclose(obs[:-1], action)          # a_prev
+    assert obs[-1] == pytest.approx(info["E"])            # E_prev
+    obs2, _ = env.reset()
+    np.testing.assert_allclose(obs2, obs)                 # the next episode sees [a_prev, E_prev]
+
+
+def test_failed_step_observes_penalty_and_negative_reward():
+    env = HistoryMatchingEnv(SPACE, fake_evaluate)
+    env.reset(seed=0)
+    obs, reward, *_ , info = env.step(np.array([0, 0, 0, 0, 1.0], np.float32))
+    assert info["status"] == "FAIL" and reward == -10.0 and obs[-1] == pytest.approx(10.0)
+
+
+def test_action_value_round_trip():
+    values = {"poro_mult": 0.9, "permx_mult": 2.0, "permy_mult": 0.5, "permz_mult": 1.0, "skin": 5.0}
+    assert SPACE.to_values(SPACE.to_action(values)) == pytest.approx(values)
+    assert SPACE.to_values(np.full(5, 7.0)) == pytest.approx(SPACE.to_values(np.ones(5)))  # clipped
+
+
+def test_sb3_sac_learns_on_the_env_with_learn():
+    """The reference route: SB3's own learn() loop on the env (a few steps, fake simulator)."""
+    from stable_baselines3 import SAC
+
+    model = SAC("MlpPolicy", HistoryMatchingEnv(SPACE, fake_evaluate), learning_rate=3e-4,
+                buffer_size=10_000, batch_size=64, learning_starts=10, seed=0, device="cpu")
+    model.learn(total_timesteps=30)
+    assert model.num_timesteps == 30
+
+
+def _run(proposer, budget=60, workers=2):
+    calls = []
+
+    def batch(jobs: list[Job]) -> list[dict]:
+        calls.append(len(jobs))
+        out = []
+        for j in jobs:
+            ev = fake_evaluate(j.values)
+            out.append({"index": j.index, "action": list(j.action), "params": j.values,
+                        "status": ev.status.value, "E": ev.E, "penalty": ev.penalty,
+                        "reward": ev.reward, "phase": j.phase})
+        return out
+
+    return calibrate(proposer, SPACE, batch, budget, workers), calls
+
+
+def test_calibrate_counts_calls_in_batches_and_ends_on_exploit():
+    records, calls = _run(RandomProposer(SPACE.dim, 0), budget=7, workers=3)
+    assert calls == [3, 3, 1] and [r["index"] for r in records] == list(range(7))
+    assert records[-1]["phase"] == "exploit"
+
+
+def test_calibrate_replays_journaled_records_without_evaluating():
+    first, _ = _run(RandomProposer(SPACE.dim, 0), budget=6, workers=2)
+    done = {r["index"]: r for r in first[:4]}
+    calls = []
+
+    def batch(jobs):
+        calls.extend(j.index for j in jobs)
+        return [{"index": j.index, "action": list(j.action), "params": j.values, "status": "COMPLETE",
+                 "E": 1.0, "penalty": 0.0, "reward": -1.0} for j in jobs]
+
+    records = calibrate(RandomProposer(SPACE.dim, 0), SPACE, batch, 6, 2, done)
+    assert calls == [4, 5] and records[:4] == first[:4]
+
+
+def test_sac_is_reproducible_for_a_seed_and_beats_its_random_start():
+    a, _ = _run(SACProposer(SPACE.dim, 3, SACSettings(learning_starts=20)), budget=60)
+    b, _ = _run(SACProposer(SPACE.dim, 3, SACSettings(learning_starts=20)), budget=60)
+    assert [r["action"] for r in a] == [r["action"] for r in b]
+    c, _ = _run(SACProposer(SPACE.dim, 4, SACSettings(learning_starts=20)), budget=60)
+    assert [r["action"] for r in a] != [r["action"] for r in c]
+    warm = np.mean([r["E"] for r in a[:20] if math.isfinite(r["E"])])
+    late = np.mean([r["E"] for r in a[-20:] if math.isfinite(r["E"])])
+    assert late < warm  # the policy moved toward the optimum
+
+
+def test_best_record_never_picks_failed_or_invalid():
+    recs = [{"index": 0, "status": "FAIL", "E": float("nan"), "reward": -10},
+            {"index": 1, "status": "INVALID", "E": 0.001, "reward": -5},
+            {"index": 2, "status": "COMPLETE", "E": 0.2, "reward": -0.2},
+            {"index": 3, "status": "COMPLETE", "E": 0.1, "reward": -0.1}]
+    assert best_record(recs)["index"] == 3
+    assert best_record(recs[:2]) is None
+
+
+def test_make_proposer_rejects_unknown_agent():
+    with pytest.raises(ValueError, match="agent must be one of"):
+        make_proposer("ppo", 5, 0)
+    assert isinstance(make_proposer("random", 5, 0), RandomProposer)
+
+
+def test_feedback_for_failure_uses_penalty():
+    from hmcore.calibration import feedback_of
+
+    assert feedback_of({"reward": -10.0, "E": None, "penalty": 10.0}) == Feedback(-10.0, 10.0)
