@@ -21,7 +21,8 @@ from pathlib import Path
 
 from hmcore.deck_info import SECTION_NAMES as SECTIONS
 from hmcore.deck_info import DeckInfo
-from hmcore.eclipse_lexer import Block, expand_repeats, include_target, records, split_blocks
+from hmcore.eclipse_lexer import (Block, expand_repeats, include_target, records, split_blocks,
+                                  tokenize)
 from hmcore.errors import CaseError, Problem
 from hmcore.parameters import Parameter, ParameterSpace
 
@@ -51,7 +52,28 @@ class SetSkin:
     layers: tuple[int, ...] = ()
 
 
-Edit = Multiply | SetSkin
+@dataclass(frozen=True)
+class ItemMultiply:
+    """Multiply item ``item`` (1-based) of ``keyword``'s records (first item == ``match``)."""
+
+    keyword: str
+    item: int
+    factor: float
+    match: str | None = None
+
+
+@dataclass(frozen=True)
+class TableTransform:
+    """Scale (``mode="scale"``) or reshape (``mode="power"``) column ``column`` of tables."""
+
+    keyword: str
+    column: int
+    mode: str
+    value: float
+
+
+Edit = Multiply | SetSkin | ItemMultiply | TableTransform
+TABLE_COLUMNS = {"SWOF": 4, "SGOF": 4, "SLGOF": 4, "SWFN": 3, "SGFN": 3, "SOF3": 3, "SOF2": 2}
 
 
 def edits_for(space: ParameterSpace, values: dict[str, float], info: DeckInfo) -> list[Edit]:
@@ -69,6 +91,10 @@ def edits_for(space: ParameterSpace, values: dict[str, float], info: DeckInfo) -
 def _parameter_edits(p: Parameter, value: float, info: DeckInfo) -> list[Edit]:
     if p.kind == "multiply":
         return [Multiply(k.upper(), value, p.box) for k in p.keywords]
+    if p.kind == "item_multiply":
+        return [ItemMultiply(p.keywords[0].upper(), int(p.item), value, p.match)]
+    if p.kind == "relperm":
+        return [TableTransform(p.keywords[0].upper(), int(p.item or 2), p.mode, value)]
     wells = p.wells or tuple(info.producers)
     return [SetSkin(tuple(wells), value, p.layers)]
 
@@ -125,6 +151,63 @@ def _set_skin(items: list[str], edit: SetSkin) -> list[list[str]]:
     return [padded]
 
 
+def _rewrite_items(block: Block, edits: list[ItemMultiply], file: Path) -> Block:
+    """Records of ``block.keyword`` with the targeted numeric items multiplied."""
+    new_lines = [block.lines[0], f"-- records rewritten by hmflow (item multipliers)\n"]
+    for rec in records(block.body):
+        items = expand_repeats(rec)
+        for e in edits:
+            if e.match is not None and items[0].strip("'\"") != e.match:
+                continue
+            if len(items) < e.item or items[e.item - 1] == "1*":
+                raise CaseError([Problem(str(file), f"{e.keyword} item {e.item} is defaulted in "
+                                         f"record {' '.join(rec)}; hmflow cannot multiply a default",
+                                         f"write the value of item {e.item} explicitly")])
+            items[e.item - 1] = f"{float(items[e.item - 1]) * e.factor:.10g}"
+        new_lines.append(_format_compdat_record(items))
+    new_lines.append("/\n\n")
+    return Block(block.keyword, new_lines)
+
+
+def _rewrite_tables(block: Block, edits: list[TableTransform], file: Path) -> Block:
+    """Saturation tables of ``block.keyword`` with one column scaled or reshaped."""
+    import numpy as np
+
+    ncol = TABLE_COLUMNS[block.keyword]
+    new_lines = [block.lines[0], "-- tables rewritten by hmflow (relative permeability)\n"]
+    for rec in _table_records(block.body):
+        values = np.array([float(x) for x in expand_repeats(rec)], dtype=float)
+        if values.size % ncol:
+            raise CaseError([Problem(str(file), f"{block.keyword} table has {values.size} numbers, "
+                                     f"not a multiple of {ncol} columns (defaults are not supported)",
+                                     "write every table value explicitly")])
+        table = values.reshape(-1, ncol)
+        for e in edits:
+            col = table[:, e.column - 1]
+            top = col.max()
+            if e.mode == "scale":
+                col = np.minimum(col * e.value, 1.0)
+            elif top > 0:
+                col = top * (col / top) ** e.value
+            table[:, e.column - 1] = col
+        new_lines += [" " + " ".join(f"{v:.8g}" for v in row) + "\n" for row in table]
+        new_lines.append("/\n")
+    new_lines.append("\n")
+    return Block(block.keyword, new_lines)
+
+
+def _table_records(body: str) -> list[list[str]]:
+    """Table keywords have one record per table (TABDIMS NTSFUN of them), no empty terminator."""
+    out, current = [], []
+    for tok in tokenize(body):
+        if tok == "/":
+            out.append(current)
+            current = []
+        else:
+            current.append(tok)
+    return [r for r in out if r]
+
+
 def _multiply_block(mults: list[Multiply]) -> str:
     body = "".join(m.record() + "\n" for m in mults)
     return f"-- parameter multipliers added by hmflow\nMULTIPLY\n{body}/\n\n"
@@ -143,6 +226,8 @@ def _resolve_include(target: str, including_file: Path, main_dir: Path) -> Path:
 def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[SetSkin],
                  state: dict) -> str:
     """Text of ``file`` with edits applied; includes that need edits are inlined."""
+    items: list[ItemMultiply] = state["items"]
+    tables: list[TableTransform] = state["tables"]
     blocks = split_blocks(file.read_text(errors="replace"), info.keyword_names)
     out: list[str] = []
     for block in blocks:
@@ -162,6 +247,14 @@ def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[
                 out.append(f"INCLUDE\n  '{path}' /\n\n")
         elif block.keyword == "COMPDAT" and skins:
             out.extend(_rewrite_compdat(block, skins, file).lines)
+        elif any(e.keyword == block.keyword for e in items):
+            out.extend(_rewrite_items(block, [e for e in items if e.keyword == block.keyword],
+                                      file).lines)
+            state["done"].add(block.keyword)
+        elif any(e.keyword == block.keyword for e in tables):
+            out.extend(_rewrite_tables(block, [e for e in tables if e.keyword == block.keyword],
+                                       file).lines)
+            state["done"].add(block.keyword)
         else:
             out.extend(block.lines)
     return "".join(out)
@@ -173,16 +266,23 @@ def _needs_inlining(path: Path, info: DeckInfo, skins: list[SetSkin], state: dic
         return False
     text = path.read_text(errors="replace")
     names = {b.keyword for b in split_blocks(text, info.keyword_names)}
-    return bool((skins and "COMPDAT" in names) or (state["section"] == "GRID"
-                                                   and names & set(SECTIONS)))
+    touched = {e.keyword for e in state["items"] + state["tables"]}
+    return bool((skins and "COMPDAT" in names) or (names & touched)
+                or (state["section"] == "GRID" and names & set(SECTIONS)))
 
 
 def render_deck(info: DeckInfo, edits: list[Edit]) -> str:
     """The per-run deck text for ``edits`` applied to the deck described by ``info``."""
     mults = [e for e in edits if isinstance(e, Multiply)]
     skins = [e for e in edits if isinstance(e, SetSkin)]
-    state = {"section": None, "multiplied": False}
+    state = {"section": None, "multiplied": False, "done": set(),
+             "items": [e for e in edits if isinstance(e, ItemMultiply)],
+             "tables": [e for e in edits if isinstance(e, TableTransform)]}
     text = _render_file(info.path, info, mults, skins, state)
+    missing = {e.keyword for e in state["items"] + state["tables"]} - state["done"]
+    if missing:
+        raise CaseError([Problem(str(info.path), f"the deck has no {sorted(missing)} keyword to edit",
+                                 "choose a keyword the deck defines")])
     if mults and not state["multiplied"]:
         raise CaseError([Problem(str(info.path), "no section keyword (EDIT or PROPS) follows GRID,"
                                  " so hmflow cannot place the MULTIPLY block",

@@ -7,7 +7,6 @@ parser (:class:`hmcore.deck_info.DeckInfo`), so data that looks like a keyword i
 from __future__ import annotations
 
 import re
-import shlex
 from dataclasses import dataclass, field
 
 _KEYWORD_RE = re.compile(r"^([A-Z][A-Z0-9_+-]{0,7})(?:\s|$)")
@@ -28,14 +27,29 @@ def strip_comment(line: str) -> str:
 
 
 def tokenize(text: str) -> list[str]:
-    """Tokens of record text: quoted strings keep their quotes; ``/`` is its own token."""
+    """Tokens of record text: quoted strings keep their quotes; ``/`` outside quotes is a token."""
     tokens: list[str] = []
     for raw in text.splitlines():
         line = strip_comment(raw)
-        lexer = shlex.shlex(line.replace("/", " / "), posix=False)
-        lexer.whitespace_split = True
-        lexer.commenters = ""
-        tokens.extend(lexer)
+        i, n = 0, len(line)
+        while i < n:
+            ch = line[i]
+            if ch.isspace():
+                i += 1
+            elif ch == "/":
+                tokens.append("/")
+                i += 1
+            elif ch in "'\"":
+                end = line.find(ch, i + 1)
+                end = n - 1 if end < 0 else end
+                tokens.append(line[i:end + 1])
+                i = end + 1
+            else:
+                j = i
+                while j < n and not line[j].isspace() and line[j] not in "/'\"":
+                    j += 1
+                tokens.append(line[i:j])
+                i = j
     return tokens
 
 

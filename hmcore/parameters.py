@@ -9,6 +9,12 @@ Kinds (each turns a value into deck edits, see :mod:`hmcore.deck`):
   ``(i1, i2, j1, j2, k1, k2)``; several keywords may share one factor.
 * ``skin`` - set COMPDAT item 11 (skin) on the connections of ``wells`` (all producers when
   empty), optionally only on ``layers`` (1-based k).
+* ``item_multiply`` - multiply numeric item ``item`` (1-based) of the records of ``keywords[0]``
+  (e.g. AQUCT item 4, the aquifer permeability; AQUFETP item 4, its volume), only in records
+  whose first item equals ``match`` when given (an aquifer id, say).
+* ``relperm`` - transform column ``item`` (1-based, default 2: krw in SWOF/SWFN, krg in
+  SGOF/SGFN) of every table of ``keywords[0]``: ``mode="scale"`` multiplies it (capped at 1),
+  ``mode="power"`` raises its normalised shape to the given exponent, keeping end points.
 """
 
 from __future__ import annotations
@@ -18,7 +24,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-ParameterKind = Literal["multiply", "skin"]
+ParameterKind = Literal["multiply", "skin", "item_multiply", "relperm"]
+RELPERM_TABLES = ("SWOF", "SGOF", "SWFN", "SGFN", "SOF3", "SOF2", "SLGOF")
 GRID_MULTIPLIABLE = ("PORO", "PERMX", "PERMY", "PERMZ", "NTG", "MULTX", "MULTY", "MULTZ",
                      "MULTX-", "MULTY-", "MULTZ-")
 
@@ -36,6 +43,9 @@ class Parameter(BaseModel):
     wells: tuple[str, ...] = ()
     layers: tuple[int, ...] = ()
     box: tuple[int, int, int, int, int, int] | None = None
+    item: int | None = Field(default=None, ge=1)
+    match: str | None = None
+    mode: Literal["scale", "power"] = "scale"
     description: str = ""
 
     @model_validator(mode="after")
@@ -53,6 +63,17 @@ class Parameter(BaseModel):
                                  f"allowed keywords are {list(GRID_MULTIPLIABLE)}")
             if self.low <= 0:
                 raise ValueError(f"multiplier '{self.name}' must have low > 0, got low={self.low}")
+        if self.kind in ("item_multiply", "relperm") and len(self.keywords) != 1:
+            raise ValueError(f"parameter '{self.name}' of kind '{self.kind}' needs exactly one "
+                             f"keyword, got {list(self.keywords)}")
+        if self.kind == "item_multiply" and self.item is None:
+            raise ValueError(f"parameter '{self.name}' of kind 'item_multiply' needs item "
+                             "(the 1-based record item to multiply)")
+        if self.kind == "relperm" and self.keywords[0].upper() not in RELPERM_TABLES:
+            raise ValueError(f"parameter '{self.name}': relperm tables are {list(RELPERM_TABLES)}, "
+                             f"got {self.keywords[0]!r}")
+        if self.kind in ("item_multiply", "relperm") and self.low <= 0:
+            raise ValueError(f"parameter '{self.name}' must have low > 0, got low={self.low}")
         if self.box is not None:
             i1, i2, j1, j2, k1, k2 = self.box
             if not (1 <= i1 <= i2 and 1 <= j1 <= j2 and 1 <= k1 <= k2):

@@ -1,0 +1,25 @@
+# The two commands of the README. Both create ./.venv and install hmflow into it first.
+#   make run    - install, then run the main job (a 200-call SAC campaign on the built-in synthetic case)
+#   make test   - install (with test extras and Debian's OPM `flow` when apt is usable), then run the tests
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+
+.PHONY: install install-test run test
+
+install:
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q -e .
+
+install-test: install
+	$(BIN)/pip install -q -e '.[test]'
+	command -v flow >/dev/null || (command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ] && \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q libopm-simulators-bin >/dev/null) || \
+	  echo "note: Debian's flow is not installed; the command-line backend tests will be skipped"
+
+run: install
+	$(BIN)/hmflow run
+
+test: install-test
+	HMFLOW_CACHE_DIR=$$(mktemp -d) PREFECT_HOME=$$(mktemp -d) $(BIN)/python -m pytest -q
