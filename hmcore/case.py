@@ -42,7 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from hmcore.deck_info import DeckInfo
 from hmcore.errors import CaseError, Problem
-from hmcore.observed import read_observed
+from hmcore.observed import inspect_observed
 from hmcore.parameters import Parameter, ParameterSpace, reference_parameters
 
 BUILTIN_CASES = ("synthetic",)
@@ -144,35 +144,38 @@ def load_case(case: str | Path) -> Case:
     except tomllib.TOMLDecodeError as exc:
         raise CaseError([Problem(str(path), f"invalid TOML: {exc}",
                                  "fix the syntax at the line and column named")]) from exc
+    problems: list[Problem] = []
+    cfg = None
     try:
         cfg = CaseFile.model_validate(data)
     except ValidationError as exc:
-        raise CaseError([Problem(f"{path} key '{'.'.join(str(x) for x in err['loc'])}'",
-                                 err["msg"], _hint(err)) for err in exc.errors()]) from exc
-    problems: list[Problem] = []
-    deck = _relative_to(path, cfg.case.deck)
-    observed_path = _relative_to(path, cfg.case.observed)
+        problems += [Problem(f"{path} key '{'.'.join(str(x) for x in err['loc'])}'", err["msg"],
+                             _hint(err)) for err in exc.errors()]
+    section = data.get("case") if isinstance(data.get("case"), dict) else {}
+    deck_key, obs_key = section.get("deck"), section.get("observed")
     info = observed = None
-    try:
-        info = DeckInfo.inspect(deck)
-    except CaseError as exc:
-        problems.extend(exc.problems)
-    try:
-        observed = read_observed(observed_path)
-    except CaseError as exc:
-        problems.extend(exc.problems)
-    params = cfg.parameters if cfg.parameters is not None else reference_parameters()
+    deck = _relative_to(path, deck_key) if isinstance(deck_key, str) else None
+    observed_path = _relative_to(path, obs_key) if isinstance(obs_key, str) else None
+    if deck is not None:  # checked even when other keys are wrong: all problems at once
+        try:
+            info = DeckInfo.inspect(deck)
+        except CaseError as exc:
+            problems.extend(exc.problems)
+    if observed_path is not None:
+        observed, obs_problems = inspect_observed(observed_path)
+        problems.extend(obs_problems)
+    params = (cfg.parameters if cfg and cfg.parameters is not None else reference_parameters())
     if info is not None:
         problems.extend(_check_parameters(params, info, f"{path} [[parameters]]"))
     if info is not None and observed is not None:
         problems.extend(_check_observed_against_deck(observed, info, observed_path))
-    if (info is not None and cfg.case.history_end_days is not None
-            and cfg.case.history_end_days > info.end_days):
+    end = cfg.case.history_end_days if cfg else None
+    if info is not None and end is not None and end > info.end_days:
         problems.append(Problem(f"{path} key 'case.history_end_days'",
-                                f"history_end_days={cfg.case.history_end_days} is after the end "
-                                f"of the schedule ({info.end_days} days)",
-                                "use a day within the schedule or remove the key"))
-    if problems:
+                                f"history_end_days={end} is after the end of the schedule "
+                                f"({info.end_days} days)", "use a day within the schedule or "
+                                "remove the key"))
+    if problems or cfg is None:
         raise CaseError(problems)
     return Case(cfg.case.name, path, deck.resolve(), observed_path.resolve(), observed,
                 ParameterSpace(parameters=tuple(params)), info, cfg.case.time_tolerance_days,

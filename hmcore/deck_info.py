@@ -11,6 +11,7 @@ import contextlib
 import os
 import sys
 import tempfile
+import threading
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -121,9 +122,23 @@ def missing_includes(path: Path, main_dir: Path | None = None, seen: set | None 
     return problems
 
 
+_STDOUT_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def _quiet_stdout():
-    """Silence OPM's parser chatter on file descriptor 1 (it prints 'Reading ...')."""
+    """Silence OPM's parser chatter on file descriptor 1 (it prints 'Reading ...').
+
+    File descriptor 1 is process-wide: the lock keeps two threads from interleaving the
+    redirect and its undo (which would leave stdout pointing at a deleted file).
+    """
+    with _STDOUT_LOCK:
+        with _redirect_fd1():
+            yield
+
+
+@contextlib.contextmanager
+def _redirect_fd1():
     sys.stdout.flush()
     saved = os.dup(1)
     with tempfile.TemporaryFile() as sink:

@@ -27,7 +27,25 @@ def read_observed(path: Path) -> pd.DataFrame:
     flowing (bool), derived (bool), line (CSV line number, -1 for derived rows).
     Raises CaseError listing every problem.
     """
-    path = Path(path)
+    table, problems = inspect_observed(path)
+    if problems:
+        raise CaseError(problems)
+    return table
+
+
+def inspect_observed(path: Path) -> tuple[pd.DataFrame | None, list[Problem]]:
+    """The table as far as it can be read (rows with problems included) and every problem.
+
+    The table is None when the file cannot be read at all; derived rows are added only when
+    there is no problem.
+    """
+    try:
+        return _read(Path(path)), []
+    except CaseError as exc:
+        return getattr(exc, "table", None), exc.problems
+
+
+def _read(path: Path) -> pd.DataFrame:
     if not path.is_file():
         raise CaseError([Problem(str(path), "observed history file not found",
                                  "check the 'observed' key of the case file")])
@@ -77,10 +95,12 @@ def read_observed(path: Path) -> pd.DataFrame:
         problems.append(Problem(f"{path} lines {list(grp.line)}",
                                 f"duplicate rows for well {well}, {q} at day {days}",
                                 "keep one row per well, quantity and day"))
-    if problems:
-        raise CaseError(problems)
     if df.empty:
-        raise CaseError([Problem(str(path), "no observations", "add at least one row")])
+        problems.append(Problem(str(path), "no observations", "add at least one row"))
+    if problems:
+        error = CaseError(problems)
+        error.table = df.assign(derived=False)
+        raise error
     df["derived"] = False
     return derive_phase_rates(df)
 

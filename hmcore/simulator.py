@@ -49,37 +49,61 @@ def _tail(text: str) -> str:
     return text[-LOG_TAIL_CHARS:]
 
 
+def _failure_log(run_dir: Path, stderr_path: Path, stdout_path: Path) -> str:
+    """What the simulator said: stderr, then error lines of stdout and of CASE.PRT/DBG files.
+
+    OPM prints parser errors to stdout (with its chatter), Debian's flow to stdout and the PRT
+    file; keeping only stderr would lose the reason.
+    """
+    parts = [stderr_path.read_text(errors="replace").strip()]
+    out = stdout_path.read_text(errors="replace") if stdout_path.exists() else ""
+    for text in [out] + [p.read_text(errors="replace") for p in sorted(run_dir.glob("*.PRT"))
+                         + sorted(run_dir.glob("*.DBG"))]:
+        lines = text.splitlines()
+        hits = [i for i, line in enumerate(lines) if "error" in line.lower()]
+        if hits:
+            parts.append("\n".join(lines[max(0, hits[0] - 2): hits[0] + 12]))
+        elif text.strip():
+            parts.append("\n".join(lines[-5:]))
+    return _tail("\n".join(p for p in parts if p))
+
+
 def _run_process(cmd: list[str], deck: Path, run_dir: Path, timeout_s: float, backend: str,
-                 log_name: str, exit_reasons: dict[int, str] | None = None) -> SimulationResult:
-    """Run ``cmd`` (stdout discarded, stderr to the log); map failures to SimulationError.
+                 exit_reasons: dict[int, str] | None = None, cwd: Path | None = None
+                 ) -> SimulationResult:
+    """Run ``cmd`` with stderr in ``simulator.log`` and stdout in ``simulator.stdout``.
 
     A negative return code (killed by a signal, e.g. out of memory) is ``killed``; other
-    non-zero codes are looked up in ``exit_reasons`` and default to ``crash``.
+    non-zero codes are looked up in ``exit_reasons`` and default to ``crash``. A program that
+    cannot be started (missing, not executable) is a ``crash`` with that reason.
     """
     run_dir.mkdir(parents=True, exist_ok=True)
-    log_path = run_dir / log_name
+    log_path, out_path = run_dir / "simulator.log", run_dir / "simulator.stdout"
     start = time.perf_counter()
     try:
-        with open(log_path, "wb") as log:
-            proc = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=log, timeout=timeout_s,
-                                  check=False, cwd=run_dir)
+        with open(log_path, "wb") as log, open(out_path, "wb") as out:
+            proc = subprocess.run(cmd, stdout=out, stderr=log, timeout=timeout_s, check=False,
+                                  cwd=cwd or run_dir)
     except subprocess.TimeoutExpired:
         raise SimulationError("timeout", f"no result after {timeout_s:.0f} s (raise timeout_s "
                               "if the model is just slow)", run_dir,
-                              _tail(log_path.read_text(errors="replace")))
+                              _failure_log(run_dir, log_path, out_path))
+    except OSError as exc:  # FileNotFoundError, PermissionError, ...
+        raise SimulationError("crash", f"cannot start {cmd[0]}: {exc.strerror or exc} (install "
+                              "the simulator or fix the command template)", run_dir) from exc
     wall = time.perf_counter() - start
-    log_text = log_path.read_text(errors="replace")
     if proc.returncode != 0:
         reason = ("killed" if proc.returncode < 0
                   else (exit_reasons or {}).get(proc.returncode, "crash"))
         raise SimulationError(reason, f"{backend} exited with code {proc.returncode}", run_dir,
-                              _tail(log_text))
+                              _failure_log(run_dir, log_path, out_path))
     summary = run_dir / f"{deck.stem.upper()}.SMSPEC"
     if not summary.exists():
         found = sorted(run_dir.glob("*.SMSPEC"))
         if len(found) != 1:
             raise SimulationError("no_output", f"{backend} finished but wrote no summary "
-                                  f"({summary.name}) to {run_dir}", run_dir, _tail(log_text))
+                                  f"({summary.name}) to {run_dir}", run_dir,
+                                  _failure_log(run_dir, log_path, out_path))
         summary = found[0]
     return SimulationResult(summary, run_dir, wall, backend)
 
@@ -93,9 +117,12 @@ class OpmFlow:
     name: str = "opm-flow-python"
 
     def run(self, deck: Path, run_dir: Path) -> SimulationResult:
-        cmd = [sys.executable, "-m", "hmcore.opm_runner", str(deck), str(run_dir), *self.extra_args]
-        return _run_process(cmd, deck, run_dir, self.timeout_s, self.name, "simulator.log",
-                            {2: "parse_error", 3: "no_convergence"})
+        # The deck is passed by name from its own folder: OPM's option parser would take a path
+        # holding '=' (a run folder like 'skin=5') for an option.
+        deck, run_dir = Path(deck).resolve(), Path(run_dir).resolve()
+        cmd = [sys.executable, "-m", "hmcore.opm_runner", deck.name, str(run_dir), *self.extra_args]
+        return _run_process(cmd, deck, run_dir, self.timeout_s, self.name,
+                            {2: "parse_error", 3: "no_convergence"}, cwd=deck.parent)
 
 
 @dataclass(frozen=True)
@@ -116,12 +143,7 @@ class CommandLineSimulator:
 
     def run(self, deck: Path, run_dir: Path) -> SimulationResult:
         cmd = self.command(deck, run_dir)
-        try:
-            return _run_process(cmd, deck, run_dir, self.timeout_s, f"{self.name}:{cmd[0]}",
-                                "simulator.log")
-        except FileNotFoundError as exc:
-            raise SimulationError("crash", f"simulator executable not found: {cmd[0]} "
-                                  "(install it or fix the command template)", run_dir) from exc
+        return _run_process(cmd, deck, run_dir, self.timeout_s, f"{self.name}:{cmd[0]}")
 
 
 def make_simulator(spec: str | None, timeout_s: float = 600.0) -> Simulator:
