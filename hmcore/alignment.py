@@ -37,7 +37,9 @@ def align(observed: pd.DataFrame, simulated: pd.DataFrame, tolerance_days: float
     ``observed``: well, quantity, days, value (+ optional sigma, flowing, derived).
     ``simulated``: well, quantity, days, value. Both in the same units; days since START.
     """
-    sim_groups = {k: g.sort_values("days") for k, g in simulated.groupby(["well", "quantity"])}
+    # times that coincide after rounding keep the later record, whatever the row order
+    sim_groups = {k: g.sort_values("days", kind="stable").drop_duplicates("days", keep="last")
+                  for k, g in simulated.sort_index().groupby(["well", "quantity"])}
     pieces = []
     for key, obs in observed.groupby(["well", "quantity"], sort=True):
         sim = sim_groups.get(key)

@@ -44,6 +44,7 @@ from hmcore.deck_info import DeckInfo
 from hmcore.errors import CaseError, Problem
 from hmcore.observed import inspect_observed
 from hmcore.parameters import Parameter, ParameterSpace, reference_parameters
+from hmcore.responses import QUANTITIES
 
 BUILTIN_CASES = ("synthetic",)
 
@@ -224,16 +225,27 @@ def _check_observed_against_deck(obs: pd.DataFrame, info: DeckInfo, path: Path) 
     problems = []
     measured = obs[~obs.derived]
     for well, grp in measured[~measured.well.isin(list(info.wells))].groupby("well"):
-        problems.append(Problem(f"{path} lines {_lines(grp)}", f"unknown well '{well}'",
+        problems.append(Problem(f"{path} {_lines(grp)}", f"unknown well '{well}'",
                                 f"the deck's wells are {sorted(info.wells)}"))
+    for q in sorted(set(obs.quantity) & set(QUANTITIES)):  # unknown ones are reported already
+        if q not in info.keyword_names:
+            rows = obs[obs.quantity == q]
+            what = (f"the deck's SUMMARY section does not ask for {q}, so the simulator would "
+                    f"report nothing to match {len(rows)} {q} row(s) against")
+            if rows.derived.all():
+                what += f" ({q} is derived from WOPR with {'WWCT' if q == 'WWPR' else 'WGOR'})"
+            problems.append(Problem(f"{info.path} SUMMARY", what, f"add the line {q} followed by "
+                                    "a line with / to the SUMMARY section"))
     late = measured[measured.days > info.end_days + 1e-6]
     if not late.empty:
-        problems.append(Problem(f"{path} lines {_lines(late)}",
+        problems.append(Problem(f"{path} {_lines(late)}",
                                 f"days {sorted(set(late.days))[:5]} after the end of the schedule "
                                 f"({info.end_days} days)", "drop those rows or extend the deck"))
     return problems
 
 
 def _lines(df: pd.DataFrame, most: int = 8) -> str:
+    """'line 5' or 'lines 5, 9, 12 (+3 more)'."""
     lines = [int(x) for x in df.line]
-    return ", ".join(map(str, lines[:most])) + (f" (+{len(lines) - most} more)" if len(lines) > most else "")
+    word = "line " if len(lines) == 1 else "lines "
+    return word + ", ".join(map(str, lines[:most])) + (f" (+{len(lines) - most} more)" if len(lines) > most else "")

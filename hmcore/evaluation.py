@@ -107,12 +107,13 @@ def evaluate(case: Case, values: dict[str, float], run_dir: Path,
     if not phys.runnable:
         return failed("physically impossible, not simulated: " + "; ".join(phys.violations))
     deck = prepare_run_deck(case.deck, values, case.space, Path(run_dir), case.info)
+    sim_start = time.perf_counter()
     try:
         result = simulator.run(deck, Path(run_dir))
     except SimulationError as exc:
         tail = exc.log_tail.strip().splitlines()[-1:] if exc.log_tail else []
         return failed(f"{exc.reason}: {exc.message}" + (f" | {tail[0]}" if tail else ""),
-                      time.perf_counter() - start)
+                      time.perf_counter() - sim_start)
     end = last_time(result.summary_path)
     if end < case.info.end_days - 1e-3:
         return failed(f"no_convergence: stopped at day {end} of {case.info.end_days}",

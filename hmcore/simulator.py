@@ -85,7 +85,7 @@ def _run_process(cmd: list[str], deck: Path, run_dir: Path, timeout_s: float, ba
             proc = subprocess.run(cmd, stdout=out, stderr=log, timeout=timeout_s, check=False,
                                   cwd=cwd or run_dir)
     except subprocess.TimeoutExpired:
-        raise SimulationError("timeout", f"no result after {timeout_s:.0f} s (raise timeout_s "
+        raise SimulationError("timeout", f"no result after {timeout_s:g} s (raise timeout_s "
                               "if the model is just slow)", run_dir,
                               _failure_log(run_dir, log_path, out_path))
     except OSError as exc:  # FileNotFoundError, PermissionError, ...
@@ -133,7 +133,8 @@ class CommandLineSimulator:
     extension). The simulator must leave ``CASE.SMSPEC``/``CASE.UNSMRY`` in ``run_dir``.
     """
 
-    template: str = "flow {deck} --output-dir={run_dir} --enable-terminal-output=false"
+    template: str = ("flow {deck} --output-dir={run_dir} --enable-terminal-output=false "
+                     "--threads-per-process=1")
     timeout_s: float = 600.0
     name: str = "command-line"
 

@@ -95,10 +95,10 @@ def check(case: str = typer.Option("synthetic", "--case", help=CASE_HELP)) -> No
     console.print(f"  deck      {c.deck}: grid {'x'.join(map(str, c.info.dims))}, "
                   f"{c.info.nactive} active cells, wells {sorted(c.info.wells)}, "
                   f"schedule {c.info.end_days:g} days")
-    counts = obs.groupby("quantity").size().to_dict()
     derived = obs[obs.derived].groupby("quantity").size().to_dict()
-    console.print(f"  history   {c.observed_path}: {len(obs[~obs.derived])} rows {counts}"
-                  + (f", derived {derived}" if derived else ""))
+    measured = obs[~obs.derived].groupby("quantity").size().to_dict()
+    console.print(f"  history   {c.observed_path}: {int((~obs.derived).sum())} measured rows "
+                  f"{measured}" + (f", derived {derived}" if derived else ""))
     console.print(f"  fitting   days <= {c.history_end_days if c.history_end_days else 'end'}, "
                   f"tolerance {c.time_tolerance_days:g} d, misfit {c.misfit.variant}")
     for p in c.space.parameters:
@@ -140,7 +140,8 @@ def evaluate(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         console.print(f"reason: {ev.reason}")
     if ev.metrics:
         print_tables(ev.metrics)
-    console.print(f"wrote {out / 'metrics.json'} and {out / 'responses.parquet'}")
+    written = [out / "metrics.json"] + ([out / "responses.parquet"] if ev.responses is not None else [])
+    console.print("wrote " + " and ".join(map(str, written)))
     if ev.status.value == "FAIL":
         raise typer.Exit(1)
 

@@ -1,0 +1,650 @@
+"""Diagnosis of a calibrated case: what does the model get wrong, and which extension fixes it?
+
+Steps (each a method of :class:`Diagnosis`, so the Prefect flow can store every step's
+artifacts; :func:`diagnose` runs them all):
+
+1. ``calibrate``  - the case's own (global) parameters by bounded Levenberg-Marquardt on the
+   whitened residuals of the fitted history, or a given calibrated vector evaluated once;
+2. ``analyse``    - residual statistics per well, response and period against the noise level
+   (:func:`hmcore.diagnosis.residuals.analyse_residuals`);
+3. ``rank``       - one finite-difference run per candidate extension (and per global
+   parameter for a fresh Jacobian), all in one parallel batch; score test with the globals
+   projected out (:mod:`hmcore.diagnosis.attribution`);
+4. ``extend``     - the extended models of the leading candidates (globals + one new
+   parameter each), warm-started at the calibrated point with the linear model's step;
+5. ``recalibrate``- the extended models recalibrated together (lockstep LM, Broyden Jacobian
+   updates); the gain on the fitted AND the held-back history; an extension is selected only
+   when its held-back misfit improves beyond noise;
+6. ``report``     - ``diagnosis.json``, ``report.md`` and residual plots.
+
+The simulator is never run here: ``evaluate_batch(case, values_list, step) -> results`` is
+injected (results are :class:`hmcore.evaluation.Evaluation`-like: ``status``, ``E``,
+``E_heldout``, ``responses``); :func:`local_evaluator` is a plain thread-pool one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import math
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pandas as pd
+
+from hmcore.case import Case
+from hmcore.diagnosis.attribution import Score, projector_basis, score_test
+from hmcore.diagnosis.extensions import (KINDS, Candidate, build_candidates, deck_skins,
+                                         extended_space)
+from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings,
+                                          run_lockstep)
+from hmcore.diagnosis.residuals import ObservationSet, analyse_residuals
+from hmcore.evaluation import score_responses
+from hmcore.parameters import ParameterSpace
+
+EvaluateBatch = Callable[[Case, list[dict[str, float]], str], list[Any]]
+
+
+@dataclass
+class DiagnosisSettings:
+    """Knobs of a diagnosis. Thresholds are in chi-square units of the whitened residuals."""
+
+    kinds: tuple[str, ...] = KINDS
+    confirm_top: int = 2
+    """Leading candidates confirmed by an actual recalibration."""
+    chi2_threshold: float = 30.0
+    """A candidate is beyond noise when its score test removes more than this (chi2 units).
+    Pure noise gives chi-square(1) values, the largest of ~30 candidates rarely above 15;
+    the default adds a margin for the imperfect noise model (set against the control cases)."""
+    fit_threshold: float = 30.0
+    """A confirmed extension must lower the fitted SSR by more than this."""
+    heldout_threshold: float = 6.0
+    """... and the held-back SSR by more than this (and the held-back E must drop)."""
+    calibration: LMSettings = field(default_factory=lambda: LMSettings(
+        fd_step=0.1, max_iter=10, max_evaluations=40, trials=2))
+    recalibration: LMSettings = field(default_factory=lambda: LMSettings(
+        fd_step=0.1, max_iter=5, max_evaluations=8, trials=1))
+    global_fd_step: float = 0.1
+    heldout_fraction: float = 0.25
+    """Held back when the case sets no history_end_days: this share of the record."""
+    plots: bool = True
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+# ============================================================================= evaluators
+def local_evaluator(run_root: Path, workers: int = 2, simulator=None) -> EvaluateBatch:
+    """``evaluate_batch`` running :func:`hmcore.evaluation.evaluate` on a thread pool.
+
+    Run directories are ``run_root/<step>-<n>`` (never reused); at most ``workers`` at once.
+    """
+    from hmcore.evaluation import evaluate
+
+    run_root = Path(run_root)
+    counter = itertools.count()
+    lock = threading.Lock()
+
+    def evaluate_batch(case: Case, values_list: list[dict[str, float]], step: str = "run"):
+        with lock:
+            dirs = [run_root / f"{step}-{next(counter):05d}" for _ in values_list]
+        with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+            return list(pool.map(lambda a: evaluate(case, a[0], a[1], simulator),
+                                 zip(values_list, dirs)))
+
+    return evaluate_batch
+
+
+# ============================================================================= helpers
+def _ok(result) -> bool:
+    status = getattr(result, "status", None)
+    status = getattr(status, "value", status)
+    return status != "FAIL" and getattr(result, "responses", None) is not None
+
+
+def _e(x) -> float | None:
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+def _natural(name: str) -> tuple:
+    import re
+
+    return tuple(int(t) if t.isdigit() else t for t in re.split(r"(\d+)", str(name)))
+
+
+@dataclass
+class Run:
+    """A simulated point of the diagnosis: values, its residual vectors and scores."""
+
+    values: dict[str, float]
+    result: Any
+    r_fit: np.ndarray | None
+    r_heldout: np.ndarray | None
+
+    @property
+    def ok(self) -> bool:
+        return self.r_fit is not None
+
+    @property
+    def ssr_fit(self) -> float:
+        return float(self.r_fit @ self.r_fit) if self.ok else math.inf
+
+    @property
+    def ssr_heldout(self) -> float:
+        return float(self.r_heldout @ self.r_heldout) if self.ok else math.inf
+
+    @property
+    def responses(self) -> pd.DataFrame | None:
+        return getattr(self.result, "responses", None)
+
+
+# ============================================================================= diagnosis
+class Diagnosis:
+    """The diagnosis of one case, step by step (see the module docstring)."""
+
+    def __init__(self, case: Case, evaluate_batch: EvaluateBatch,
+                 settings: DiagnosisSettings | None = None,
+                 log: Callable[[str], None] | None = None):
+        self.settings = settings or DiagnosisSettings()
+        self.obs = ObservationSet.from_case(case, self.settings.heldout_fraction)
+        if case.history_end_days is None:  # score E on the same split as the residuals
+            case = dataclasses.replace(case, history_end_days=self.obs.history_end_days)
+        self.case = case
+        self._evaluate = evaluate_batch
+        self.log = log or (lambda msg: None)
+        self.coords = Coordinates(case.space.parameters)
+        self.n_runs = 0
+        self.sim_time_s = 0.0
+        self.started = time.perf_counter()
+        self.timings: dict[str, float] = {}
+        # state filled by the steps
+        self.base: Run | None = None
+        self.u_base: np.ndarray | None = None
+        self.J_global: np.ndarray | None = None
+        self.calibration: dict = {}
+        self.residuals: dict = {}
+        self.candidates: list[Candidate] = []
+        self.union_case: Case | None = None
+        self.scores: dict[str, Score] = {}
+        self.probe_runs: dict[str, Run] = {}
+        self.sensitivity: dict[str, np.ndarray] = {}
+        self.ranking: dict = {}
+        self.extension: dict = {}
+        self.confirmed: dict[str, dict] = {}
+        self.confirmed_runs: dict[str, Run] = {}
+        self.recalibration: dict = {}
+        self.document: dict = {}
+
+    # ------------------------------------------------------------------ simulation
+    def _run(self, case: Case, values_list: list[dict[str, float]], step: str,
+             obs: ObservationSet | None = None) -> list[Run]:
+        if not values_list:
+            return []
+        t0 = time.perf_counter()
+        results = self._evaluate(case, values_list, step)
+        self.n_runs += len(values_list)
+        runs = []
+        for values, res in zip(values_list, results):
+            self.sim_time_s += float(getattr(res, "sim_time_s", 0.0) or 0.0)
+            runs.append(self._rescore(Run(dict(values), res, None, None), obs))
+        self.log(f"{step}: {len(values_list)} runs in {time.perf_counter() - t0:.1f} s "
+                 f"({sum(r.ok for r in runs)} ok)")
+        return runs
+
+    def _rescore(self, run: Run, obs: ObservationSet | None = None) -> Run:
+        """``run`` with its whitened residual vectors under ``obs`` (default: current)."""
+        obs = obs or self.obs
+        if not _ok(run.result):
+            return Run(run.values, run.result, None, None)
+        z = obs.standardized(run.result.responses)
+        return Run(run.values, run.result, obs.whiten(z, "fit"), obs.whiten(z, "heldout"))
+
+    def _scores(self, run: Run) -> dict:
+        """E, per-response and per-well-response misfits, SSRs of a run."""
+        s = score_responses(self.case, run.responses)
+        return {"E": s["E"], "E_heldout": s["E_heldout"], "per_response": s["per_response"],
+                "per_well_response": s["per_well_response"], "ssr_fit": run.ssr_fit,
+                "ssr_heldout": run.ssr_heldout}
+
+    # ------------------------------------------------------------------ 1 calibrate
+    def default_start(self) -> dict[str, float]:
+        """The base model as given: multipliers 1, skins as in the deck (inside the bounds)."""
+        skins = deck_skins(self.case.info)
+        out = {}
+        for p in self.case.space.parameters:
+            if p.kind == "skin":
+                wells = p.wells or tuple(self.case.info.producers)
+                v = float(np.mean([skins.get(w, 0.0) for w in wells])) if wells else 0.0
+            else:
+                v = 1.0
+            out[p.name] = float(np.clip(v, p.low, p.high))
+        return out
+
+    def calibrate(self, calibrated: dict[str, float] | None = None,
+                  initial: dict[str, float] | None = None) -> dict:
+        """Calibrate the case's parameters (or evaluate ``calibrated`` once).
+
+        Phase 1: weighted least squares (sigma from the data or estimated from the observed
+        series, no time correlation) from ``initial`` (default: the base model as given).
+        Then the noise level and its time correlation are re-estimated from the residuals of
+        the phase-1 model, and phase 2 polishes the fit under that noise model (fresh
+        finite-difference Jacobian, prewhitened residuals)."""
+        t0 = time.perf_counter()
+        space = self.case.space
+        obs0 = self.obs
+        phases = []
+        if calibrated is not None:
+            missing = [n for n in space.names if n not in calibrated]
+            if missing:
+                raise KeyError(f"calibrated values miss parameters {missing}")
+            values = {n: float(calibrated[n]) for n in space.names}
+            run = self._run(self.case, [values], "calibration")[0]
+            if not run.ok:
+                raise RuntimeError(f"the calibrated model failed to simulate: "
+                                   f"{getattr(run.result, 'reason', '')}")
+            phases.append({"phase": "given", "runs": 1})
+        else:
+            start = {**self.default_start(), **(initial or {})}
+            wls = obs0.without_time_correlation()
+            lm = self._minimise(LevenbergMarquardt(self.coords.to_u(start),
+                                                   self.settings.calibration, label="phase 1"),
+                                wls)
+            run = lm.best.payload
+            phases.append(self._lm_doc("1: weighted least squares, noise from the observed "
+                                       "series", lm, start))
+        # the noise model from the residuals of the calibrated model
+        self.obs = obs0.refine(run.responses, self.case.observed)
+        run = self._rescore(run)
+        u = self.coords.to_u(run.values)
+        if calibrated is None:
+            p2 = dataclasses.replace(self.settings.calibration,
+                                     max_iter=max(2, self.settings.calibration.max_iter // 2))
+            from hmcore.diagnosis.recalibrate import Point
+
+            lm = self._minimise(LevenbergMarquardt(u, p2, start=Point(u, run.r_fit, run),
+                                                   label="phase 2"), self.obs)
+            run, u = lm.best.payload, lm.best.u
+            if lm.jacobian_is_fresh and lm.J is not None:
+                self.J_global = lm.J
+            phases.append(self._lm_doc("2: prewhitened residuals, noise from the residuals",
+                                       lm, None))
+        self.base, self.u_base = run, u
+        lm_doc = {"method": "given" if calibrated is not None else "levenberg-marquardt",
+                  "runs": sum(p["runs"] for p in phases), "phases": phases,
+                  "noise_initial": obs0.noise_report, "noise": self.obs.noise_report}
+        sc = self._scores(self.base)
+        self.calibration = {"values": self.base.values, "u": self.u_base.tolist(), **lm_doc,
+                            **sc, "parameters": [p.model_dump(mode="json")
+                                                 for p in space.parameters],
+                            "n_fit": self.obs.n_fit, "n_heldout": self.obs.n_heldout,
+                            "history_end_days": self.obs.history_end_days}
+        self.timings["calibrate"] = time.perf_counter() - t0
+        self.log(f"calibrated: E = {sc['E']:.5g}, held-back E = {sc['E_heldout']:.5g}, "
+                 f"SSR fit {sc['ssr_fit']:.1f} over {self.obs.n_fit} points")
+        return self.calibration
+
+    def _minimise(self, lm: LevenbergMarquardt, obs: ObservationSet) -> LevenbergMarquardt:
+        def evaluate(batch):
+            runs = self._run(self.case, [self.coords.to_values(u) for _, u in batch],
+                             "calibration", obs)
+            return [(run.r_fit, run) for run in runs]
+
+        run_lockstep([lm], evaluate)
+        if lm.best is None:
+            raise RuntimeError(f"calibration failed: {lm.reason}")
+        return lm
+
+    @staticmethod
+    def _lm_doc(phase: str, lm: LevenbergMarquardt, start: dict | None) -> dict:
+        return {"phase": phase, "runs": lm.n_evaluations, "iterations": lm.iteration,
+                "stopped": lm.reason, "start": start, "ssr": lm.best.ssr,
+                "history": [dataclasses.asdict(h) for h in lm.history]}
+
+    # ------------------------------------------------------------------ 2 analyse
+    def analyse(self) -> dict:
+        t0 = time.perf_counter()
+        self.residuals = analyse_residuals(self.obs, self.base.responses)
+        self.timings["analyse"] = time.perf_counter() - t0
+        self.log(f"residuals: {len(self.residuals['flags'])} findings beyond noise")
+        return self.residuals
+
+    # ------------------------------------------------------------------ 3 rank
+    def rank(self) -> dict:
+        t0 = time.perf_counter()
+        s = self.settings
+        values0 = self.base.values
+        self.candidates = build_candidates(self.case.info, self.case.space, values0, s.kinds)
+        self.union_case = self.case.with_space(extended_space(self.case.space, self.candidates))
+        jobs: list[dict[str, float]] = []
+        tags: list[tuple[str, Any]] = []
+        if self.J_global is None:
+            for i, p in enumerate(self.case.space.parameters):
+                h = s.global_fd_step if self.u_base[i] + s.global_fd_step <= 1 else -s.global_fd_step
+                u = self.u_base.copy()
+                u[i] += h
+                jobs.append(self.coords.to_values(u))
+                tags.append(("global", (i, h)))
+        for c in self.candidates:
+            jobs.append({**values0, c.name: c.probe})
+            tags.append(("candidate", c))
+        runs = self._run(self.union_case, jobs, "ranking")
+        r0 = self.base.r_fit
+        if self.J_global is None:
+            J = np.zeros((r0.size, self.coords.dim))
+            for (kind, info), run in zip(tags, runs):
+                if kind == "global" and run.ok:
+                    i, h = info
+                    J[:, i] = (run.r_fit - r0) / h
+            self.J_global = J
+        Q = projector_basis(self.J_global)
+        rows = []
+        for (kind, c), run in zip(tags, runs):
+            if kind != "candidate":
+                continue
+            cc = Coordinates([c.parameter])
+            u0 = float(cc.to_u({c.name: c.neutral})[0])
+            du = float(cc.to_u({c.name: c.probe})[0]) - u0
+            self.probe_runs[c.id] = run
+            if not run.ok or abs(du) < 1e-12:
+                rows.append({"id": c.id, "status": "probe run failed",
+                             "reason": getattr(run.result, "reason", "")})
+                continue
+            j = (run.r_fit - r0) / du
+            self.sensitivity[c.id] = j
+            sc = score_test(r0, j, Q, (-1.0 - u0, 1.0 - u0))
+            self.scores[c.id] = sc
+            raw = score_test(r0, j, None, (-1.0 - u0, 1.0 - u0))
+            rows.append({"id": c.id, "status": "ok", **sc.to_dict(),
+                         "score_without_refit": raw.score, "chi2_without_refit": raw.chi2,
+                         "u_neutral": u0, "u_probe": u0 + du,
+                         "predicted_value": cc.to_values(np.array([u0 + sc.step_u]))[c.name]})
+        order = sorted(self.scores, key=lambda k: -self.scores[k].chi2)
+        beyond = [k for k in order if self.scores[k].chi2 >= s.chi2_threshold]
+        by_id = {c.id: c for c in self.candidates}
+        self.ranking = {
+            "chi2_threshold": s.chi2_threshold, "ssr_fit": float(r0 @ r0), "n_fit": int(r0.size),
+            "order": order, "beyond_noise": beyond,
+            "candidates": [{**by_id[row["id"]].machine(), "description":
+                            by_id[row["id"]].description, **row} for row in rows],
+            "runs": len(jobs)}
+        self.timings["rank"] = time.perf_counter() - t0
+        top = ", ".join(f"{k} ({self.scores[k].chi2:.0f})" for k in order[:5])
+        self.log(f"ranking: {len(beyond)} of {len(order)} candidates beyond noise; top: {top}")
+        return self.ranking
+
+    # ------------------------------------------------------------------ 4 extend
+    def extend(self) -> dict:
+        """The extended models of the leading candidates (no simulation)."""
+        by_id = {c.id: c for c in self.candidates}
+        top = self.ranking["beyond_noise"][: self.settings.confirm_top]
+        models = []
+        for cid in top:
+            c = by_id[cid]
+            space = extended_space(self.case.space, [c])
+            models.append({"id": cid, "kind": c.kind, "description": c.description,
+                           "parameters": [p.model_dump(mode="json") for p in space.parameters],
+                           "start": {**self.base.values, c.name: c.neutral},
+                           "predicted_value": next(r["predicted_value"]
+                                                   for r in self.ranking["candidates"]
+                                                   if r["id"] == cid)})
+        self.extension = {"models": models,
+                          "note": ("no candidate explains more than noise: nothing to extend"
+                                   if not models else
+                                   f"{len(models)} leading candidate(s) to recalibrate")}
+        return self.extension
+
+    # ------------------------------------------------------------------ 5 recalibrate
+    def recalibrate(self) -> dict:
+        t0 = time.perf_counter()
+        s = self.settings
+        by_id = {c.id: c for c in self.candidates}
+        ids = [m["id"] for m in self.extension.get("models", [])]
+        minimisers, coords, cases = [], [], []
+        for cid in ids:
+            c = by_id[cid]
+            space = extended_space(self.case.space, [c])
+            co = Coordinates(space.parameters)
+            u_c0 = Coordinates([c.parameter]).to_u({c.name: c.neutral})
+            u0 = np.concatenate([self.u_base, u_c0])
+            J0 = np.column_stack([self.J_global, self.sensitivity[cid]])
+            start = _StartPoint(u0, self.base)
+            lm = LevenbergMarquardt(u0, s.recalibration, start=start.point(), jacobian=J0,
+                                    label=cid)
+            minimisers.append(lm)
+            coords.append(co)
+            cases.append(self.union_case)
+
+        def evaluate(batch):
+            values = [coords[k].to_values(u) for k, u in batch]
+            runs = self._run(self.union_case, values, "recalibration")
+            return [(run.r_fit, run) for run in runs]
+
+        run_lockstep(minimisers, evaluate)
+        base_sc = self._scores(self.base)
+        self.confirmed, self.confirmed_runs = {}, {}
+        for cid, lm in zip(ids, minimisers):
+            run = lm.best.payload
+            sc = self._scores(run) if run is not self.base else base_sc
+            d_fit = base_sc["ssr_fit"] - sc["ssr_fit"]
+            d_ho = base_sc["ssr_heldout"] - sc["ssr_heldout"]
+            e_ho_b, e_ho_a = base_sc["E_heldout"], sc["E_heldout"]
+            fit_ok = d_fit > s.fit_threshold
+            ho_ok = (self.obs.n_heldout > 0 and d_ho > s.heldout_threshold
+                     and math.isfinite(e_ho_a) and e_ho_a < e_ho_b)
+            self.confirmed_runs[cid] = run
+            self.confirmed[cid] = {
+                "id": cid, "values": run.values, "value": run.values[by_id[cid].name],
+                "runs": lm.n_evaluations, "iterations": lm.iteration, "stopped": lm.reason,
+                "ssr_fit_before": base_sc["ssr_fit"], "ssr_fit_after": sc["ssr_fit"],
+                "ssr_heldout_before": base_sc["ssr_heldout"], "ssr_heldout_after": sc["ssr_heldout"],
+                "delta_ssr_fit": d_fit, "delta_ssr_heldout": d_ho,
+                "fit_before": base_sc["E"], "fit_after": sc["E"],
+                "heldout_before": e_ho_b, "heldout_after": e_ho_a,
+                "fit_beyond_noise": bool(fit_ok), "heldout_beyond_noise": bool(ho_ok),
+                "per_well_response_after": sc["per_well_response"],
+                "per_well_response_heldout_after": _per_well_heldout(self.case, run.responses),
+                "history": [dataclasses.asdict(h) for h in lm.history]}
+            self.log(f"recalibrated {cid}: SSR fit {base_sc['ssr_fit']:.1f} -> "
+                     f"{sc['ssr_fit']:.1f}, held-back {base_sc['ssr_heldout']:.1f} -> "
+                     f"{sc['ssr_heldout']:.1f}; E {base_sc['E']:.4g} -> {sc['E']:.4g}, "
+                     f"held-back E {e_ho_b:.4g} -> {e_ho_a:.4g}")
+        self.recalibration = {"confirmed": self.confirmed, "thresholds": {
+            "fit": s.fit_threshold, "heldout": s.heldout_threshold}}
+        self.timings["recalibrate"] = time.perf_counter() - t0
+        return self.recalibration
+
+    # ------------------------------------------------------------------ decision + document
+    def decide(self) -> dict:
+        """The ranked causes, the selected extension (or null) and the gain."""
+        s = self.settings
+        by_id = {c.id: c for c in self.candidates}
+
+        def cause(cid: str, evidence: str) -> dict:
+            c = by_id[cid]
+            sc = self.scores.get(cid)
+            conf = self.confirmed.get(cid)
+            return {"kind": c.kind, "wells": list(c.wells), "layers": list(c.layers),
+                    "score": sc.score if sc else None, "chi2": sc.chi2 if sc else None,
+                    "description": c.description, "id": cid, "evidence": evidence,
+                    "machine": c.machine(),
+                    "confirmed": None if conf is None else {
+                        k: conf[k] for k in ("value", "delta_ssr_fit", "delta_ssr_heldout",
+                                             "fit_before", "fit_after", "heldout_before",
+                                             "heldout_after", "fit_beyond_noise",
+                                             "heldout_beyond_noise", "runs")}}
+
+        confirmed_ok = sorted([k for k, v in self.confirmed.items() if v["fit_beyond_noise"]],
+                              key=lambda k: -self.confirmed[k]["delta_ssr_fit"])
+        confirmed_bad = [k for k in self.confirmed if k not in confirmed_ok]
+        unconfirmed = [k for k in self.ranking["beyond_noise"] if k not in self.confirmed]
+        rest = [k for k in self.ranking["order"]
+                if k not in confirmed_ok and k not in confirmed_bad and k not in unconfirmed]
+        causes = [cause(k, "recalibrated: the fitted misfit drops beyond noise")
+                  for k in confirmed_ok]
+        causes += [cause(k, "score test beyond noise (not recalibrated)") for k in unconfirmed]
+        top_chi2 = max([self.scores[k].chi2 for k in self.scores] or [0.0])
+        causes.append({"kind": "none", "wells": [], "layers": [], "score": None,
+                       "chi2": s.chi2_threshold, "id": "none",
+                       "description": ("nothing beyond noise remains below this line: the "
+                                       "noise level of the score test "
+                                       f"(chi2 {s.chi2_threshold:g}; the best candidate "
+                                       f"reaches {top_chi2:.1f})"),
+                       "evidence": "threshold", "machine": None, "confirmed": None})
+        causes += [cause(k, "recalibrated, but the fitted misfit does not drop beyond noise")
+                   for k in confirmed_bad]
+        causes += [cause(k, "score test within noise") for k in rest]
+
+        selected = None
+        verdict = ""
+        for k in confirmed_ok:
+            if self.confirmed[k]["heldout_beyond_noise"]:
+                selected = k
+                break
+        if selected is not None:
+            conf = self.confirmed[selected]
+            verdict = (f"accepted {selected}: {by_id[selected].description}; fitted E "
+                       f"{conf['fit_before']:.4g} -> {conf['fit_after']:.4g}, held-back E "
+                       f"{conf['heldout_before']:.4g} -> {conf['heldout_after']:.4g}")
+        elif confirmed_ok:
+            k = confirmed_ok[0]
+            conf = self.confirmed[k]
+            verdict = (f"rejected {k}: it improves the fitted history (SSR -"
+                       f"{conf['delta_ssr_fit']:.0f}) but not the held-back history beyond "
+                       f"noise (SSR change {-conf['delta_ssr_heldout']:+.1f}, held-back E "
+                       f"{conf['heldout_before']:.4g} -> {conf['heldout_after']:.4g}); "
+                       "no extension is selected")
+        elif self.confirmed:
+            verdict = ("the leading candidates were recalibrated but none lowers the fitted "
+                       "misfit beyond noise; no extension is selected")
+        else:
+            verdict = ("no candidate explains more of the residual than noise would: the "
+                       "calibrated model is consistent with the data within the noise level")
+        base_sc = self._scores(self.base)
+        after = self.confirmed.get(selected) if selected else None
+        gain = {"fit_before": base_sc["E"], "fit_after": after["fit_after"] if after else base_sc["E"],
+                "heldout_before": base_sc["E_heldout"],
+                "heldout_after": after["heldout_after"] if after else base_sc["E_heldout"],
+                "ssr_fit_before": base_sc["ssr_fit"],
+                "ssr_fit_after": after["ssr_fit_after"] if after else base_sc["ssr_fit"],
+                "ssr_heldout_before": base_sc["ssr_heldout"],
+                "ssr_heldout_after": after["ssr_heldout_after"] if after else base_sc["ssr_heldout"],
+                "n_fit": self.obs.n_fit, "n_heldout": self.obs.n_heldout}
+        shown = selected or (confirmed_ok[0] if confirmed_ok else
+                             (next(iter(self.confirmed)) if self.confirmed else None))
+        per_well = _per_well_table(base_sc["per_well_response"],
+                                   _per_well_heldout(self.case, self.base.responses),
+                                   self.confirmed[shown]["per_well_response_after"] if shown else None,
+                                   self.confirmed[shown]["per_well_response_heldout_after"]
+                                   if shown else None)
+        self.document = {
+            "case": self.case.name, "source": str(self.case.source),
+            "history_end_days": self.obs.history_end_days,
+            "parameters": self.case.space.names,
+            "calibrated": self.base.values,
+            "causes": causes,
+            "selected": None if selected is None else {
+                **cause(selected, "selected"), "values": self.confirmed[selected]["values"]},
+            "verdict": verdict,
+            "gain": gain,
+            "per_well_response": {"extension": shown, "rows": per_well},
+            "candidates_recalibrated": self.confirmed,
+            "residuals": self.residuals,
+            "ranking": self.ranking,
+            "calibration": self.calibration,
+            "settings": self.settings.to_dict(),
+            "cost": {"simulations": self.n_runs, "sim_time_s": self.sim_time_s,
+                     "wall_time_s": time.perf_counter() - self.started, "steps_s": self.timings},
+        }
+        return self.document
+
+    def report(self, out_dir: Path | None = None) -> dict:
+        """Write diagnosis.json, report.md and the residual plots into ``out_dir``."""
+        from hmcore.diagnosis.report import markdown_report, plot_wells
+        from hmcore.report import to_jsonable
+
+        doc = self.document or self.decide()
+        files: dict[str, Any] = {}
+        if out_dir is not None:
+            out_dir = Path(out_dir)
+            out_dir.mkdir(parents=True, exist_ok=True)
+            plots = []
+            if self.settings.plots:
+                shown = doc["per_well_response"]["extension"]
+                ext = self.confirmed_runs.get(shown) if shown else None
+                wells = _plot_wells(doc, self.case)
+                plots = plot_wells(self.obs, self.base.responses,
+                                   ext.responses if ext is not None else None, wells, out_dir,
+                                   label=shown or "")
+            doc["plots"] = [p.name for p in plots]
+            (out_dir / "diagnosis.json").write_text(json.dumps(to_jsonable(doc), indent=2))
+            (out_dir / "report.md").write_text(markdown_report(doc))
+            files = {"diagnosis": out_dir / "diagnosis.json", "report": out_dir / "report.md",
+                     "plots": plots}
+        return files
+
+
+@dataclass
+class _StartPoint:
+    u: np.ndarray
+    run: Run
+
+    def point(self):
+        from hmcore.diagnosis.recalibrate import Point
+
+        return Point(self.u.copy(), self.run.r_fit, self.run)
+
+
+def _per_well_heldout(case: Case, responses: pd.DataFrame) -> dict:
+    from hmcore.alignment import align
+    from hmcore.misfit import category_ranges, misfit
+
+    held = case.heldout_observed
+    if held.empty or responses is None:
+        return {}
+    ha = align(held, responses, case.time_tolerance_days)
+    return misfit(ha.pairs, "mean", 0.0, category_ranges(case.observed)).per_well_response
+
+
+def _per_well_table(before: dict, before_ho: dict, after: dict | None,
+                    after_ho: dict | None) -> list[dict]:
+    rows = []
+    for well in sorted(set(before) | set(before_ho), key=_natural):
+        for resp in ("bhp", "oil", "water", "gas"):
+            b = before.get(well, {}).get(resp)
+            if b is None and before_ho.get(well, {}).get(resp) is None:
+                continue
+            rows.append({"well": well, "response": resp, "fit_before": b,
+                         "fit_after": (after or {}).get(well, {}).get(resp),
+                         "heldout_before": before_ho.get(well, {}).get(resp),
+                         "heldout_after": (after_ho or {}).get(well, {}).get(resp)})
+    return rows
+
+
+def _plot_wells(doc: dict, case: Case) -> list[str]:
+    for c in doc["causes"]:
+        if c["kind"] != "none":
+            if c["wells"]:
+                return list(c["wells"])
+            break
+    return sorted(case.info.wells, key=_natural)
+
+
+def diagnose(case: Case, evaluate_batch: EvaluateBatch, *, calibrated: dict | None = None,
+             initial: dict | None = None, settings: DiagnosisSettings | None = None,
+             out_dir: Path | None = None, log: Callable[[str], None] | None = None) -> dict:
+    """Run every step; return the diagnosis document (also written to ``out_dir``)."""
+    d = Diagnosis(case, evaluate_batch, settings, log)
+    d.calibrate(calibrated, initial)
+    d.analyse()
+    d.rank()
+    d.extend()
+    d.recalibrate()
+    doc = d.decide()
+    d.report(out_dir)
+    return doc

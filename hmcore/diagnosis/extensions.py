@@ -1,0 +1,358 @@
+"""The library of model extensions: declared parameter families, each producing candidates.
+
+A :class:`Candidate` is one physical hypothesis ("PROD3's completion is more damaged than the
+others", "a sealing fault between the west and east wells") represented by one new
+:class:`~hmcore.parameters.Parameter` of an existing kind, with
+
+* ``kind`` (one of :data:`KINDS`), ``wells`` and ``layers`` (1-based k) it concerns;
+* ``description`` in plain words and :meth:`Candidate.machine` (the parameter as data);
+* ``neutral``: the value that reproduces the unextended model, and ``probe``: the value of the
+  one finite-difference run used to rank it (see :mod:`hmcore.diagnosis.attribution`).
+
+Families (see :func:`build_candidates`):
+
+``well_skin``               COMPDAT skin of one well (kind ``skin``, ``wells=(w,)``)
+``regional_permeability``   PERMX and PERMY in a box of +-3 cells around one well, all layers
+``layer_permeability``      PERMX and PERMY in one layer k
+``vertical_permeability``   PERMZ in one layer k (and globally, unless the case already has a
+                            global PERMZ multiplier)
+``aquifer_strength``        AQUCT item 4 (permeability) or AQUFETP item 4 (volume) / item 6
+                            (productivity index), per aquifer
+``fault_transmissibility``  MULTX (MULTY) on a plane i = i0 (j = j0) between two groups of
+                            wells, through all layers
+``relative_permeability``   exponent of the water table's krw (SWOF/SWFN column 2) and of the
+                            gas table's krg (SGOF/SGFN column 2)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from hmcore.deck_info import DeckInfo
+from hmcore.eclipse_lexer import expand_repeats, include_target, records, split_blocks
+from hmcore.parameters import Parameter, ParameterSpace
+
+KINDS = ("well_skin", "regional_permeability", "layer_permeability", "vertical_permeability",
+         "aquifer_strength", "fault_transmissibility", "relative_permeability")
+
+REGION_HALF_WIDTH = 3
+"""Half width (cells) of the box of a regional permeability candidate."""
+PERM_BOUNDS = (0.1, 10.0)
+PERMZ_BOUNDS = (0.01, 100.0)
+AQUIFER_BOUNDS = (0.05, 20.0)
+FAULT_BOUNDS = (1e-4, 1.0)
+RELPERM_BOUNDS = (0.4, 3.0)
+WELL_SKIN_BOUNDS = (-5.0, 30.0)
+PROBE = {"well_skin": 6.0, "regional_permeability": 0.4, "layer_permeability": 0.4,
+         "vertical_permeability": 0.1, "aquifer_strength": 0.3,
+         "fault_transmissibility": 0.01, "relative_permeability": 1.6}
+"""Finite-difference probe: skin increment, or factor (multipliers), or exponent."""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One model extension: a new parameter, what it means and where it acts."""
+
+    id: str
+    kind: str
+    parameter: Parameter
+    wells: tuple[str, ...] = ()
+    layers: tuple[int, ...] = ()
+    description: str = ""
+    neutral: float = 1.0
+    probe: float = 1.0
+    details: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return self.parameter.name
+
+    def machine(self) -> dict:
+        """The extension as data: kind, wells, layers and the parameter definition."""
+        return {"id": self.id, "kind": self.kind, "wells": list(self.wells),
+                "layers": list(self.layers), "neutral": self.neutral, "probe": self.probe,
+                "parameter": self.parameter.model_dump(mode="json"), **self.details}
+
+
+# ----------------------------------------------------------------------------- deck facts
+def deck_blocks(info: DeckInfo) -> dict[str, list[list[str]]]:
+    """Records of selected keywords in the deck (include files followed)."""
+    wanted = {"AQUCT", "AQUFETP", "COMPDAT", "SWOF", "SWFN", "SGOF", "SGFN"}
+    found: dict[str, list[list[str]]] = {}
+    seen: set[Path] = set()
+
+    def visit(path: Path) -> None:
+        if path in seen or not path.is_file():
+            return
+        seen.add(path)
+        if path.stat().st_size > 2 ** 21 and path != info.path:
+            return
+        for block in split_blocks(path.read_text(errors="replace"), info.keyword_names):
+            if block.keyword == "INCLUDE":
+                target = include_target(block)
+                if target:
+                    p = Path(target)
+                    visit(p if p.is_absolute() else (info.path.parent / p).resolve())
+            elif block.keyword in wanted:
+                found.setdefault(block.keyword, []).extend(
+                    [expand_repeats(r) for r in records(block.body)])
+
+    visit(info.path)
+    return found
+
+
+def deck_skins(info: DeckInfo) -> dict[str, float]:
+    """Mean COMPDAT skin (item 11, default 0) of each well's connections in the deck."""
+    skins: dict[str, list[float]] = {}
+    for rec in deck_blocks(info).get("COMPDAT", []):
+        well = rec[0].strip("'\"")
+        try:
+            s = float(rec[10]) if len(rec) > 10 and rec[10] != "1*" else 0.0
+        except ValueError:
+            s = 0.0
+        skins.setdefault(well, []).append(s)
+    return {w: sum(v) / len(v) for w, v in skins.items()}
+
+
+def current_skin(well: str, space: ParameterSpace, values: dict[str, float],
+                 info: DeckInfo) -> float:
+    """The skin ``well`` has in the model with ``values`` (the last skin parameter touching it,
+    else the deck's)."""
+    skin = deck_skins(info).get(well, 0.0)
+    for p in space.parameters:
+        if p.kind == "skin" and p.name in values and not p.layers:
+            targets = p.wells or tuple(info.producers)
+            if well in targets:
+                skin = float(values[p.name])
+    return skin
+
+
+def well_column(info: DeckInfo, well: str) -> tuple[int, int]:
+    """(i, j) of a well's first connection (1-based)."""
+    conns = info.wells[well].connections
+    i, j, _ = conns[0]
+    return i, j
+
+
+# ----------------------------------------------------------------------------- families
+def _has_global(space: ParameterSpace, keyword: str) -> bool:
+    return any(p.kind == "multiply" and p.box is None and keyword in [k.upper() for k in p.keywords]
+               for p in space.parameters)
+
+
+def well_skin(info: DeckInfo, space: ParameterSpace, values: dict[str, float]) -> list[Candidate]:
+    out = []
+    for well in sorted(info.producers, key=_natural):
+        s0 = current_skin(well, space, values, info)
+        lo, hi = WELL_SKIN_BOUNDS
+        lo, hi = min(lo, s0 - 1.0), max(hi, s0 + 1.0)
+        probe = s0 + PROBE["well_skin"] if s0 + PROBE["well_skin"] <= hi else s0 - PROBE["well_skin"]
+        p = Parameter(name=f"skin_{_slug(well)}", kind="skin", wells=(well,), low=lo, high=hi,
+                      description=f"skin of well {well}")
+        out.append(Candidate(f"well_skin:{well}", "well_skin", p, (well,), (),
+                             f"well {well} has a different completion skin (formation damage or "
+                             "stimulation) than the other wells", s0, probe))
+    return out
+
+
+def regional_permeability(info: DeckInfo, space: ParameterSpace,
+                          values: dict[str, float]) -> list[Candidate]:
+    nx, ny, nz = info.dims
+    h = REGION_HALF_WIDTH
+    out = []
+    for well in sorted(info.producers, key=_natural):
+        i, j = well_column(info, well)
+        box = (max(1, i - h), min(nx, i + h), max(1, j - h), min(ny, j + h), 1, nz)
+        p = Parameter(name=f"perm_region_{_slug(well)}", kind="multiply",
+                      keywords=("PERMX", "PERMY"), box=box, low=PERM_BOUNDS[0],
+                      high=PERM_BOUNDS[1],
+                      description=f"PERMX and PERMY multiplier around {well}")
+        out.append(Candidate(f"regional_permeability:{well}", "regional_permeability", p,
+                             (well,), (),
+                             f"the rock around well {well} (cells i {box[0]}-{box[1]}, j "
+                             f"{box[2]}-{box[3]}, all layers) is more or less permeable than "
+                             "the model says", 1.0, PROBE["regional_permeability"],
+                             {"box": list(box)}))
+    return out
+
+
+def layer_permeability(info: DeckInfo, space: ParameterSpace,
+                       values: dict[str, float]) -> list[Candidate]:
+    nx, ny, nz = info.dims
+    out = []
+    for k in range(1, nz + 1):
+        wells = tuple(w for w in sorted(info.producers, key=_natural)
+                      if any(c[2] == k for c in info.wells[w].connections))
+        p = Parameter(name=f"perm_layer{k}", kind="multiply", keywords=("PERMX", "PERMY"),
+                      box=(1, nx, 1, ny, k, k), low=PERM_BOUNDS[0], high=PERM_BOUNDS[1],
+                      description=f"PERMX and PERMY multiplier of layer {k}")
+        out.append(Candidate(f"layer_permeability:{k}", "layer_permeability", p, wells, (k,),
+                             f"layer {k} is more or less permeable (horizontally) than the model "
+                             "says", 1.0, PROBE["layer_permeability"]))
+    return out
+
+
+def vertical_permeability(info: DeckInfo, space: ParameterSpace,
+                          values: dict[str, float]) -> list[Candidate]:
+    if "PERMZ" not in info.properties:
+        return []
+    nx, ny, nz = info.dims
+    out = []
+    if not _has_global(space, "PERMZ"):
+        p = Parameter(name="permz_global", kind="multiply", keywords=("PERMZ",),
+                      low=PERMZ_BOUNDS[0], high=PERMZ_BOUNDS[1],
+                      description="global PERMZ multiplier")
+        out.append(Candidate("vertical_permeability:all", "vertical_permeability", p, (), (),
+                             "vertical permeability is different everywhere (kv/kh)", 1.0,
+                             PROBE["vertical_permeability"]))
+    for k in range(1, nz + 1):
+        p = Parameter(name=f"permz_layer{k}", kind="multiply", keywords=("PERMZ",),
+                      box=(1, nx, 1, ny, k, k), low=PERMZ_BOUNDS[0], high=PERMZ_BOUNDS[1],
+                      description=f"PERMZ multiplier of layer {k}")
+        out.append(Candidate(f"vertical_permeability:{k}", "vertical_permeability", p, (), (k,),
+                             f"layer {k} lets fluids through vertically more or less than the "
+                             "model says (a shale baffle or fractures)", 1.0,
+                             PROBE["vertical_permeability"]))
+    return out
+
+
+def aquifer_strength(info: DeckInfo, space: ParameterSpace,
+                     values: dict[str, float]) -> list[Candidate]:
+    blocks = deck_blocks(info)
+    out = []
+    specs = []
+    if "AQUCT" in blocks:
+        specs.append(("AQUCT", 4, "permeability", "aquifer_perm"))
+    if "AQUFETP" in blocks:
+        specs.append(("AQUFETP", 4, "volume", "aquifer_volume"))
+        specs.append(("AQUFETP", 6, "productivity index", "aquifer_pi"))
+    for keyword, item, what, stem in specs:
+        recs = [r for r in blocks[keyword] if len(r) >= item and r[item - 1] != "1*"]
+        ids = [r[0].strip("'\"") for r in recs]
+        if not ids:
+            continue
+        several = len(ids) > 1
+        for aq in ids:
+            match = aq if several else None
+            name = f"{stem}{aq}" if several else stem
+            p = Parameter(name=name, kind="item_multiply", keywords=(keyword,), item=item,
+                          match=match, low=AQUIFER_BOUNDS[0], high=AQUIFER_BOUNDS[1],
+                          description=f"{keyword} item {item} ({what}) multiplier"
+                                      + (f" of aquifer {aq}" if several else ""))
+            out.append(Candidate(f"aquifer_strength:{keyword}:{item}:{aq}", "aquifer_strength", p,
+                                 (), (),
+                                 f"the aquifer{f' {aq}' if several else ''} is stronger or weaker "
+                                 f"than the model says ({keyword} {what})", 1.0,
+                                 PROBE["aquifer_strength"],
+                                 {"keyword": keyword, "item": item, "aquifer": aq}))
+    return out
+
+
+def fault_transmissibility(info: DeckInfo, space: ParameterSpace,
+                           values: dict[str, float]) -> list[Candidate]:
+    """Barrier planes between neighbouring well columns, in I (MULTX) and J (MULTY)."""
+    nx, ny, nz = info.dims
+    cols = {w: well_column(info, w) for w in info.producers}
+    out = []
+    for axis, keyword, n_along in (("i", "MULTX", nx), ("j", "MULTY", ny)):
+        pos = sorted({c[0] if axis == "i" else c[1] for c in cols.values()})
+        for a, b in zip(pos, pos[1:]):
+            if b - a < 1:
+                continue
+            p0 = (a + b) // 2  # the barrier is the face between cell p0 and p0 + 1
+            if axis == "i":
+                box = (p0, p0, 1, ny, 1, nz)
+            else:
+                box = (1, nx, p0, p0, 1, nz)
+            side_a = sorted([w for w, c in cols.items() if (c[0] if axis == "i" else c[1]) <= p0],
+                            key=_natural)
+            side_b = sorted([w for w, c in cols.items() if (c[0] if axis == "i" else c[1]) > p0],
+                            key=_natural)
+            words = ("west", "east") if axis == "i" else ("south", "north")
+            p = Parameter(name=f"fault_{axis}{p0}", kind="multiply", keywords=(keyword,), box=box,
+                          low=FAULT_BOUNDS[0], high=FAULT_BOUNDS[1],
+                          description=f"{keyword} on the plane {axis} = {p0} | {p0 + 1}")
+            out.append(Candidate(
+                f"fault_transmissibility:{axis}{p0}", "fault_transmissibility", p,
+                tuple(side_a + side_b), (),
+                f"a sealing or partly sealing fault between {axis} = {p0} and {p0 + 1} "
+                f"separates the {words[0]} wells ({', '.join(side_a)}) from the {words[1]} "
+                f"wells ({', '.join(side_b)})", 1.0, PROBE["fault_transmissibility"],
+                {"plane": f"{axis}={p0}|{p0 + 1}", "box": list(box),
+                 "groups": [side_a, side_b]}))
+    return out
+
+
+def relative_permeability(info: DeckInfo, space: ParameterSpace,
+                          values: dict[str, float]) -> list[Candidate]:
+    names = info.keyword_names
+    out = []
+    for phase, tables in (("water", ("SWOF", "SWFN")), ("gas", ("SGOF", "SGFN"))):
+        table = next((t for t in tables if t in names), None)
+        if table is None:
+            continue
+        short = "krw" if phase == "water" else "krg"
+        p = Parameter(name=f"{short}_exponent", kind="relperm", keywords=(table,), item=2,
+                      mode="power", low=RELPERM_BOUNDS[0], high=RELPERM_BOUNDS[1],
+                      description=f"exponent applied to the normalised {short} curve of {table}")
+        out.append(Candidate(f"relative_permeability:{phase}", "relative_permeability", p, (), (),
+                             f"the {phase} relative permeability curve has another shape "
+                             f"({short} in {table} rises earlier or later with saturation)", 1.0, PROBE["relative_permeability"],
+                             {"phase": phase, "table": table}))
+    return out
+
+
+FAMILIES = {"well_skin": well_skin, "regional_permeability": regional_permeability,
+            "layer_permeability": layer_permeability,
+            "vertical_permeability": vertical_permeability,
+            "aquifer_strength": aquifer_strength,
+            "fault_transmissibility": fault_transmissibility,
+            "relative_permeability": relative_permeability}
+
+
+def build_candidates(info: DeckInfo, space: ParameterSpace, values: dict[str, float] | None = None,
+                     kinds: tuple[str, ...] | list[str] | None = None) -> list[Candidate]:
+    """Every candidate of the chosen families (default all) for a deck and calibration space.
+
+    ``values`` are the calibrated values of ``space`` (they set a well-skin candidate's neutral
+    value). Parameter names never clash with the space's.
+    """
+    values = dict(values or {})
+    out: list[Candidate] = []
+    for kind in (kinds or KINDS):
+        if kind not in FAMILIES:
+            raise ValueError(f"unknown extension kind {kind!r}; known: {list(KINDS)}")
+        out.extend(FAMILIES[kind](info, space, values))
+    taken = set(space.names)
+    return [c for c in out if c.name not in taken]
+
+
+def extended_space(space: ParameterSpace, candidates: list[Candidate]) -> ParameterSpace:
+    """``space`` followed by the candidates' parameters (after the globals, so a well's own
+    skin overrides a global skin)."""
+    return ParameterSpace(parameters=tuple(space.parameters) + tuple(c.parameter for c in candidates))
+
+
+def candidate_for_parameter(parameter: Parameter, info: DeckInfo, space: ParameterSpace
+                            ) -> Candidate | None:
+    """The library candidate whose parameter acts like ``parameter`` (same kind, keywords, box,
+    wells, layers, item, match, mode), e.g. to name a hidden effect; None when none does."""
+    def sig(p: Parameter) -> tuple:
+        return (p.kind, tuple(k.upper() for k in p.keywords), p.box, p.wells, p.layers,
+                p.item if p.kind != "relperm" else (p.item or 2), p.match, p.mode)
+
+    for c in build_candidates(info, space):
+        if sig(c.parameter) == sig(parameter):
+            return c
+    return None
+
+
+def _slug(name: str) -> str:
+    return "".join(ch if ch.isalnum() else "_" for ch in name)
+
+
+def _natural(name: str) -> tuple:
+    import re
+
+    return tuple(int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name))

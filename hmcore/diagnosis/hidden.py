@@ -1,0 +1,219 @@
+"""Cases with a hidden effect: the "measured" data come from a truth that has one extension
+the calibration space lacks. Used by the tests and the benchmark of the diagnosis.
+
+* :func:`draw_effect` draws, from a seed, one library candidate of a kind (which well, layer,
+  fault plane, aquifer, table) and a strength within realistic ranges.
+* :func:`write_hidden_synthetic_case` writes the built-in synthetic case (seeded fields, noise
+  and the known global truth) with the effect applied in the truth run, through
+  :func:`hmcore.synthetic.write_synthetic_case` (``truth_space`` = reference + the effect).
+* :func:`write_hidden_deck_case` does the same for any deck (e.g. PUNQ-S3): a truth run of the
+  deck with the effect applied by :func:`hmcore.deck.prepare_run_deck`, PUNQ-style noise
+  (BHP 3 bar flowing / 1 bar shut in, GOR 10 % / 25 % of the value before / after gas
+  breakthrough, WCT 0.02 / 0.05 before / after water breakthrough, AR(1) in time), an
+  observed CSV (optionally without sigma) and a case TOML.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from hmcore.deck_info import DeckInfo
+from hmcore.diagnosis.extensions import KINDS, Candidate, build_candidates
+from hmcore.parameters import Parameter, ParameterSpace
+
+STRENGTH = {
+    # kind: ((low, high) of a decrease, (low, high) of an increase, P(decrease)); factors or
+    # skin increments (well_skin) / exponents (relative_permeability)
+    "well_skin": ((-6.0, -4.0), (8.0, 15.0), 0.25),
+    "regional_permeability": ((0.15, 0.35), (3.0, 6.0), 0.6),
+    "layer_permeability": ((0.2, 0.35), (2.5, 4.0), 0.5),
+    "vertical_permeability": ((0.005, 0.02), (20.0, 50.0), 0.7),
+    "aquifer_strength": ((0.08, 0.2), (5.0, 10.0), 0.5),
+    "fault_transmissibility": ((1e-3, 1e-2), (1e-3, 1e-2), 1.0),
+    "relative_permeability": ((0.45, 0.6), (1.8, 2.5), 0.5),
+}
+"""Realistic ranges of hidden effects, log-uniform for multipliers."""
+
+
+@dataclass(frozen=True)
+class HiddenEffect:
+    """One hidden extension: the library candidate and its true value."""
+
+    candidate: Candidate
+    value: float
+
+    @property
+    def kind(self) -> str:
+        return self.candidate.kind
+
+    @property
+    def parameter(self) -> Parameter:
+        return self.candidate.parameter
+
+    def to_dict(self) -> dict:
+        return {"id": self.candidate.id, "kind": self.kind, "wells": list(self.candidate.wells),
+                "layers": list(self.candidate.layers), "value": self.value,
+                "parameter": self.parameter.model_dump(mode="json"),
+                "description": self.candidate.description}
+
+
+def draw_effect(kind: str, seed: int, info: DeckInfo, space: ParameterSpace,
+                values: dict[str, float], choices: list[str] | None = None) -> HiddenEffect:
+    """A random candidate of ``kind`` (optionally among ids ``choices``) and strength."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown kind {kind!r}")
+    rng = np.random.default_rng([seed, KINDS.index(kind)])
+    cands = [c for c in build_candidates(info, space, values, (kind,))
+             if choices is None or c.id in choices]
+    if not cands:
+        raise ValueError(f"the deck offers no {kind} candidate")
+    c = cands[int(rng.integers(len(cands)))]
+    (dlo, dhi), (ulo, uhi), p_down = STRENGTH[kind]
+    lo, hi = (dlo, dhi) if rng.random() < p_down else (ulo, uhi)
+    if kind == "well_skin":
+        value = c.neutral + float(rng.uniform(lo, hi))
+    else:
+        value = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+    value = float(np.clip(value, c.parameter.low, c.parameter.high))
+    return HiddenEffect(c, value)
+
+
+# ----------------------------------------------------------------------------- synthetic case
+def synthetic_deck_info(seed: int) -> DeckInfo:
+    """DeckInfo of the synthetic base deck of ``seed`` (written to a temp dir; no simulation)."""
+    from hmcore.synthetic import DECK_NAME, make_fields, render_deck
+
+    field_rng, _ = np.random.default_rng(seed).spawn(2)
+    with tempfile.TemporaryDirectory(prefix="hmflow-hidden-") as tmp:
+        deck = Path(tmp) / DECK_NAME
+        deck.write_text(render_deck(make_fields(field_rng), seed))
+        return DeckInfo.inspect(deck)
+
+
+def write_hidden_synthetic_case(dest: Path, seed: int, kind: str | None = None,
+                                effect: HiddenEffect | None = None) -> tuple[Path, HiddenEffect | None]:
+    """The synthetic case of ``seed`` whose truth hides ``effect`` (or one drawn of ``kind``;
+    neither: the control, nothing hidden). Returns (case.toml, effect); the effect is also
+    written to ``dest/hidden_effect.json``."""
+    from hmcore.synthetic import SYNTHETIC_TRUTH, write_synthetic_case
+
+    space = ParameterSpace.reference()
+    if effect is None and kind is not None:
+        effect = draw_effect(kind, seed, synthetic_deck_info(seed), space, SYNTHETIC_TRUTH)
+    if effect is None:
+        case = write_synthetic_case(dest, seed)
+    else:
+        truth_space = ParameterSpace(parameters=space.parameters + (effect.parameter,))
+        case = write_synthetic_case(dest, seed, truth={effect.parameter.name: effect.value},
+                                    truth_space=truth_space)
+    (Path(dest) / "hidden_effect.json").write_text(
+        json.dumps(effect.to_dict() if effect else None, indent=2) + "\n")
+    return case, effect
+
+
+# ----------------------------------------------------------------------------- any deck
+NOISE = {"rho": 0.7, "bhp_flowing": 3.0, "bhp_shut_in": 1.0, "gor_before": 0.10,
+         "gor_after": 0.25, "gas_breakthrough_ratio": 1.10, "wct_before": 0.02,
+         "wct_after": 0.05, "water_breakthrough_wct": 0.01}
+"""PUNQ-S3's noise description (the model description's sigma table), AR(1) in time."""
+
+
+def _ar1(rng: np.random.Generator, n: int, rho: float) -> np.ndarray:
+    z = np.empty(n)
+    e = rng.standard_normal(n)
+    for t in range(n):
+        z[t] = e[t] if t == 0 else rho * z[t - 1] + math.sqrt(1 - rho * rho) * e[t]
+    return z
+
+
+def noisy_history(truth: pd.DataFrame, rng: np.random.Generator, noise: dict | None = None,
+                  start_day: float = 0.5) -> pd.DataFrame:
+    """Observed rows (well, days, quantity, value, sigma, flowing) from noise-free responses.
+
+    WOPR: the rate control, exact, no sigma. WBHP, WGOR (flowing), WWCT (flowing): the truth
+    plus sigma times a unit AR(1) series along each well's rows.
+    """
+    nz = {**NOISE, **(noise or {})}
+    wide = truth[truth.days >= start_day].pivot_table(index=["well", "days"], columns="quantity",
+                                                      values="value")
+    rows = []
+    for well in sorted(wide.index.get_level_values("well").unique()):
+        t = wide.loc[well]
+        days = t.index.to_numpy(float)
+        flowing = t["WOPR"].to_numpy() > 0
+
+        def add(q, d, v, sig, flow):
+            rows.append(pd.DataFrame({"well": well, "days": d, "quantity": q, "value": v,
+                                      "sigma": sig, "flowing": flow.astype(int)}))
+
+        add("WOPR", days, t["WOPR"].to_numpy(), np.full(days.size, np.nan), flowing)
+        bhp = t["WBHP"].to_numpy()
+        sig = np.where(flowing, nz["bhp_flowing"], nz["bhp_shut_in"])
+        add("WBHP", days, bhp + sig * _ar1(rng, days.size, nz["rho"]), sig, flowing)
+        fd = days[flowing]
+        gor = t["WGOR"].to_numpy()[flowing]
+        if gor.size:
+            bt = np.maximum.accumulate(gor > nz["gas_breakthrough_ratio"] * gor[0])
+            sig = np.where(bt, nz["gor_after"], nz["gor_before"]) * gor
+            add("WGOR", fd, np.maximum(gor + sig * _ar1(rng, gor.size, nz["rho"]), 0.0), sig,
+                np.ones(gor.size, bool))
+        wct = t["WWCT"].to_numpy()[flowing]
+        if wct.size:
+            bt = np.maximum.accumulate(wct > nz["water_breakthrough_wct"])
+            sig = np.where(bt, nz["wct_after"], nz["wct_before"])
+            add("WWCT", fd, np.clip(wct + sig * _ar1(rng, wct.size, nz["rho"]), 0.0, 1.0), sig,
+                np.ones(wct.size, bool))
+    obs = pd.DataFrame(pd.concat(rows, ignore_index=True))
+    obs["value"] = obs["value"] + 0.0
+    return obs
+
+
+def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str, float],
+                           space: ParameterSpace | None = None, kind: str | None = None,
+                           effect: HiddenEffect | None = None, history_end_days: float,
+                           with_sigma: bool = True, name: str = "hidden",
+                           simulator=None) -> tuple[Path, HiddenEffect | None]:
+    """A case on ``deck`` whose measured data hide ``effect`` (or one drawn of ``kind``).
+
+    ``truth``: values of the calibration ``space`` (default: the reference five) in the truth.
+    Writes ``observed.csv``, ``truth_responses.csv``, ``hidden_effect.json`` and ``case.toml``
+    (deck given by absolute path) into ``dest``; returns (case.toml, effect).
+    """
+    from hmcore.deck import prepare_run_deck
+    from hmcore.responses import read_responses
+    from hmcore.simulator import OpmFlow
+
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    deck = Path(deck).resolve()
+    info = DeckInfo.inspect(deck)
+    space = space or ParameterSpace.reference()
+    if effect is None and kind is not None:
+        effect = draw_effect(kind, seed, info, space, truth)
+    truth_space = ParameterSpace(parameters=space.parameters + ((effect.parameter,) if effect
+                                                                 else ()))
+    values = {**truth, **({effect.parameter.name: effect.value} if effect else {})}
+    sim = simulator or OpmFlow()
+    run_dir = dest / "truth-run"
+    run_deck = prepare_run_deck(deck, values, truth_space, run_dir, info)
+    result = sim.run(run_deck, run_dir)
+    truth_df = read_responses(result.summary_path, sorted(info.wells))
+    truth_df.to_csv(dest / "truth_responses.csv", index=False)
+    obs = noisy_history(truth_df, np.random.default_rng([seed, 7919]))
+    if not with_sigma:
+        obs = obs.drop(columns=["sigma"])
+    obs.to_csv(dest / "observed.csv", index=False, float_format="%.6g")
+    (dest / "hidden_effect.json").write_text(
+        json.dumps({"effect": effect.to_dict() if effect else None, "truth": values},
+                   indent=2) + "\n")
+    case = dest / "case.toml"
+    case.write_text(f'[case]\nname = "{name}"\ndeck = "{deck}"\nobserved = "observed.csv"\n'
+                    f"history_end_days = {history_end_days:g}\n")
+    return case, effect

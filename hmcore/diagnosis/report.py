@@ -1,0 +1,124 @@
+"""The diagnosis report: ranking table, gain table, residual findings (Markdown) and plots."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from hmcore.diagnosis.residuals import ObservationSet
+
+PLOTTED = ("WBHP", "WGOR", "WWCT")
+LABELS = {"WBHP": "BHP (bar)", "WGOR": "GOR (sm3/sm3)", "WWCT": "water cut"}
+
+
+def _f(v, digits: int = 4) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    if isinstance(v, (int, np.integer)):
+        return str(v)
+    v = float(v)
+    return f"{v:.{digits}g}"
+
+
+def ranking_table(doc: dict, most: int = 15) -> str:
+    lines = ["| rank | kind | wells | layers | score | chi2 | evidence | description |",
+             "|---|---|---|---|---|---|---|---|"]
+    for n, c in enumerate(doc["causes"][:most], 1):
+        lines.append(f"| {n} | {c['kind']} | {', '.join(c['wells']) or '-'} | "
+                     f"{', '.join(map(str, c['layers'])) or '-'} | {_f(c['score'], 3)} | "
+                     f"{_f(c['chi2'], 4)} | {c.get('evidence', '')} | {c['description']} |")
+    return "\n".join(lines)
+
+
+def gain_table(doc: dict) -> str:
+    g = doc["gain"]
+    lines = ["| misfit | before | after |", "|---|---|---|",
+             f"| E, fitted history | {_f(g['fit_before'], 5)} | {_f(g['fit_after'], 5)} |",
+             f"| E, held-back history | {_f(g['heldout_before'], 5)} | "
+             f"{_f(g['heldout_after'], 5)} |",
+             f"| whitened SSR, fitted ({g['n_fit']} points) | {_f(g['ssr_fit_before'], 6)} | "
+             f"{_f(g['ssr_fit_after'], 6)} |",
+             f"| whitened SSR, held back ({g['n_heldout']} points) | "
+             f"{_f(g['ssr_heldout_before'], 6)} | {_f(g['ssr_heldout_after'], 6)} |"]
+    return "\n".join(lines)
+
+
+def well_table(doc: dict) -> str:
+    pw = doc["per_well_response"]
+    lines = [f"Extension shown: `{pw['extension'] or 'none'}`", "",
+             "| well | response | fitted before | fitted after | held back before | "
+             "held back after |", "|---|---|---|---|---|---|"]
+    for r in pw["rows"]:
+        lines.append(f"| {r['well']} | {r['response']} | {_f(r['fit_before'])} | "
+                     f"{_f(r['fit_after'])} | {_f(r['heldout_before'])} | "
+                     f"{_f(r['heldout_after'])} |")
+    return "\n".join(lines)
+
+
+def markdown_report(doc: dict) -> str:
+    sel = doc.get("selected")
+    lines = [f"# Diagnosis of case `{doc['case']}`", "",
+             f"Calibrated parameters: " + ", ".join(f"{k} = {_f(v)}"
+                                                      for k, v in doc["calibrated"].items()),
+             f"; history fitted up to day {_f(doc['history_end_days'], 6)}, later data held "
+             "back.", "", "## Verdict", "", doc["verdict"], "",
+             "Selected extension: " + (f"**{sel['kind']}** ({sel['id']}) - {sel['description']}"
+                                       if sel else "**none**"), "",
+             "## Gain", "", gain_table(doc), "", "## Ranked causes", "",
+             ranking_table(doc), "", "## Misfit per well and response (E contributions)", "",
+             well_table(doc), "", "## Residual findings beyond noise (calibrated model)", ""]
+    flags = doc["residuals"].get("flags", [])
+    lines += [f"- {f['text']}" for f in flags[:40]] or ["- none"]
+    if len(flags) > 40:
+        lines.append(f"- ... and {len(flags) - 40} more")
+    if doc.get("plots"):
+        lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in doc["plots"]]
+    cost = doc.get("cost", {})
+    lines += ["", f"Cost: {cost.get('simulations')} simulations, "
+                  f"{_f(cost.get('wall_time_s'), 4)} s wall time.", ""]
+    return "\n".join(lines)
+
+
+def plot_wells(obs: ObservationSet, base: pd.DataFrame, extended: pd.DataFrame | None,
+               wells: list[str], out_dir: Path, label: str = "") -> list[Path]:
+    """One PNG per well: observed vs calibrated vs extended BHP, GOR and water cut."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = []
+    rows = obs.rows
+    for well in wells:
+        fig, axes = plt.subplots(len(PLOTTED), 1, figsize=(8, 8.5), sharex=True)
+        for ax, q in zip(axes, PLOTTED):
+            o = rows[(rows.well == well) & (rows.quantity == q)]
+            if q != "WBHP":
+                o = o[o.flowing]
+            ax.errorbar(o.days, o.observed, yerr=o.sigma, fmt="o", ms=3, color="k", alpha=0.6,
+                        elinewidth=0.6, label="observed")
+            for resp, name, style in ((base, "calibrated", "C0-"),
+                                      (extended, f"extended {label}", "C3-")):
+                if resp is None:
+                    continue
+                s = resp[(resp.well == well) & (resp.quantity == q)].sort_values("days")
+                if q != "WBHP":
+                    s = s[s.value > 0] if q == "WGOR" else s
+                ax.plot(s.days, s.value, style, lw=1.4, label=name)
+            if obs.history_end_days is not None:
+                ax.axvline(obs.history_end_days, color="gray", ls="--", lw=1)
+            ax.set_ylabel(LABELS[q])
+            ax.grid(alpha=0.3)
+        axes[0].set_title(f"{well}: observed vs calibrated vs extended (dashed: end of fitted "
+                          "history)", fontsize=10)
+        axes[0].legend(fontsize=8, loc="best")
+        axes[-1].set_xlabel("days")
+        fig.tight_layout()
+        path = Path(out_dir) / f"residuals_{''.join(ch if ch.isalnum() else '_' for ch in well)}.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        out.append(path)
+    return out

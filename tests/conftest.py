@@ -1,0 +1,180 @@
+"""Shared fixtures: the PUNQ-S3 benchmark data (read in place from ../shared/punqs3) and a
+session-wide cache of real OPM Flow runs, so that the truth deck is simulated once per session.
+
+The data is never copied into the repository; tests that need it skip with a clear reason when
+it is absent. Tests that need a writable deck copy the three deck files into their tmp_path.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import re
+import shutil
+import threading
+from pathlib import Path
+
+import pytest
+
+PUNQ_DIR = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
+PUNQ_DECK = PUNQ_DIR / "PUNQS3.DATA"
+PUNQ_DECK_FILES = ("PUNQS3.DATA", "PUNQS3.GEO", "PUNQS3.PRP")
+PUNQ_OBS_FULL = PUNQ_DIR / "punqs3_observed_full_history.csv"
+PUNQ_OBS_STANDARD = PUNQ_DIR / "punqs3_observed_standard.csv"
+PUNQ_HISTORY_END_DAYS = 2936.0
+PUNQ_WELLS = ("PRO-1", "PRO-4", "PRO-5", "PRO-11", "PRO-12", "PRO-15")
+TRUTH_VALUES = {"poro_mult": 1.0, "permx_mult": 1.0, "permy_mult": 1.0, "permz_mult": 1.0,
+                "skin": 5.0}
+
+# The machine has 2 cores: never more than 2 simulations at once from this test session.
+MAX_PARALLEL_SIMULATIONS = 2
+SIMULATION_SLOTS = threading.BoundedSemaphore(MAX_PARALLEL_SIMULATIONS)
+
+
+def _punq_missing() -> list[str]:
+    needed = [*PUNQ_DECK_FILES, PUNQ_OBS_FULL.name, PUNQ_OBS_STANDARD.name]
+    return [n for n in needed if not (PUNQ_DIR / n).is_file()]
+
+
+def _opm_importable() -> bool:
+    try:
+        return (importlib.util.find_spec("opm.io") is not None
+                and importlib.util.find_spec("opm.simulators") is not None)
+    except ModuleNotFoundError:
+        return False
+
+
+PUNQ_SKIP_REASON = (f"PUNQ-S3 benchmark data not found in {PUNQ_DIR} (expected ../shared/punqs3 "
+                    f"next to the repository; missing {_punq_missing()})")
+requires_punq = pytest.mark.skipif(bool(_punq_missing()), reason=PUNQ_SKIP_REASON)
+requires_opm = pytest.mark.skipif(not _opm_importable(),
+                                  reason="OPM Python packages (opm, opm-simulators) not installed")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``opm`` run the real simulator: skip them when OPM is not installed."""
+    if _opm_importable():
+        return
+    skip = pytest.mark.skip(reason="OPM Python packages (opm, opm-simulators) not installed")
+    for item in items:
+        if item.get_closest_marker("opm") is not None:
+            item.add_marker(skip)
+
+
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def copy_punq_deck(dest: Path) -> Path:
+    """Copy the deck's three files into ``dest`` (a writable temp copy); return the DATA path."""
+    dest.mkdir(parents=True, exist_ok=True)
+    for name in PUNQ_DECK_FILES:
+        shutil.copyfile(PUNQ_DIR / name, dest / name)
+    return dest / "PUNQS3.DATA"
+
+
+def write_case_toml(path: Path, *, deck: Path = PUNQ_DECK, observed: Path = PUNQ_OBS_FULL,
+                    name: str = "punqs3", history_end_days: float | None = PUNQ_HISTORY_END_DAYS,
+                    extra_case: str = "", extra: str = "") -> Path:
+    """Write a case TOML (deck/observed given as absolute paths unless relative on purpose)."""
+    lines = ["[case]", f'name = "{name}"', f'deck = "{deck}"', f'observed = "{observed}"']
+    if history_end_days is not None:
+        lines.append(f"history_end_days = {history_end_days}")
+    if extra_case:
+        lines.append(extra_case.strip())
+    text = "\n".join(lines) + "\n" + (("\n" + extra.strip() + "\n") if extra else "")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+class OpmRunCache:
+    """Real OPM Flow runs of the PUNQ-S3 deck, one per set of parameter values, cached.
+
+    Thread-safe: two threads asking for the same values share one run; at most
+    MAX_PARALLEL_SIMULATIONS simulations run at once. Each run is its own subprocess
+    (hmcore.simulator.OpmFlow).
+    """
+
+    def __init__(self, root: Path):
+        from hmcore.deck_info import DeckInfo
+        from hmcore.parameters import ParameterSpace
+
+        self.root = root
+        self.info = DeckInfo.inspect(PUNQ_DECK)
+        self.space = ParameterSpace.reference()
+        self._lock = threading.Lock()
+        self._key_locks: dict[tuple, threading.Lock] = {}
+        self._done: dict[tuple, object] = {}
+
+    @staticmethod
+    def _key(values: dict[str, float]) -> tuple:
+        return tuple(sorted((k, float(v)) for k, v in values.items()))
+
+    def run(self, values: dict[str, float] | None = None):
+        """SimulationResult of the deck with ``values`` applied ({} = the unmodified deck)."""
+        from hmcore.deck import prepare_run_deck
+        from hmcore.simulator import OpmFlow
+
+        values = dict(values or {})
+        key = self._key(values)
+        with self._lock:
+            key_lock = self._key_locks.setdefault(key, threading.Lock())
+        with key_lock:
+            if key not in self._done:
+                # no '=' in the path: OPM's option parser takes such a deck path for an option
+                slug = "base" if not key else "__".join(f"{k}-{v:g}" for k, v in key)
+                run_dir = self.root / re.sub(r"[^A-Za-z0-9_.-]", "_", slug)
+                try:
+                    deck = prepare_run_deck(PUNQ_DECK, values, self.space, run_dir, self.info)
+                    with SIMULATION_SLOTS:
+                        self._done[key] = OpmFlow(timeout_s=600).run(deck, run_dir)
+                except Exception as exc:  # remember failures too: never rerun into the same dir
+                    self._done[key] = exc
+            result = self._done[key]
+        if isinstance(result, Exception):
+            raise result
+        return result
+
+
+@pytest.fixture(scope="session")
+def punq_dir() -> Path:
+    if _punq_missing():
+        pytest.skip(PUNQ_SKIP_REASON)
+    return PUNQ_DIR
+
+
+@pytest.fixture(scope="session")
+def punq_info(punq_dir):
+    """DeckInfo of the shared PUNQ-S3 deck (parsed once per session)."""
+    if not _opm_importable():
+        pytest.skip("OPM Python packages (opm) not installed")
+    from hmcore.deck_info import DeckInfo
+
+    return DeckInfo.inspect(PUNQ_DECK)
+
+
+@pytest.fixture(scope="session")
+def punq_case_toml(punq_dir, tmp_path_factory) -> Path:
+    """The acceptance case: PUNQ-S3 deck + full measured history, fitted up to 2936 days."""
+    return write_case_toml(tmp_path_factory.mktemp("punq_case") / "punqs3.toml")
+
+
+@pytest.fixture(scope="session")
+def punq_case(punq_case_toml, punq_info):
+    from hmcore.case import load_case
+
+    return load_case(punq_case_toml)
+
+
+@pytest.fixture(scope="session")
+def opm_runs(punq_dir, tmp_path_factory) -> OpmRunCache:
+    if not _opm_importable():
+        pytest.skip("OPM Python packages (opm, opm-simulators) not installed")
+    return OpmRunCache(tmp_path_factory.mktemp("opm_runs"))
+
+
+@pytest.fixture(scope="session")
+def truth_run(opm_runs):
+    """One real OPM Flow run of the unmodified PUNQ-S3 truth deck (shared by all test files)."""
+    return opm_runs.run({})
