@@ -27,7 +27,7 @@ class SACSettings:
     gradient_steps: int = 8        # SAC updates per simulator call
     reward_scale: float = 10.0     # rewards are multiplied by this before learning
     net_arch: tuple[int, ...] = (64, 64)
-    ent_coef: str | float = "auto"
+    ent_coef: str | float = "auto_0.01"  # SB3 auto-tuning from 0.01: 1.0 drowns rewards ~1e-2
 
 
 class SACProposer:

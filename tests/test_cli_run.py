@@ -1,0 +1,57 @@
+"""`hmflow run` and `hmflow report` as a user types them (real OPM, real Prefect, real files)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.opm
+
+
+def hmflow(*args: str, cwd: Path, timeout: int = 600) -> subprocess.CompletedProcess:
+    env = {**os.environ, "COLUMNS": "150"}
+    return subprocess.run([sys.executable, "-m", "hmflow.cli", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=timeout, check=False)
+
+
+def test_run_on_the_synthetic_default_then_report_only(tmp_path):
+    run = hmflow("run", "--budget", "4", "--workers", "2", "--agent", "random", "--seed", "3",
+                 cwd=tmp_path)
+    assert run.returncode == 0, run.stdout + run.stderr
+    out = run.stdout
+    assert "campaign synthetic-random-seed3" in out
+    assert "4/4" in out                                   # the progress bar reached the budget
+    assert "best call" in out and "truth" in out          # best parameters and distance to truth
+    assert "match by category" in out and "C_match (%) per well" in out
+    storage = tmp_path / "hmflow-storage" / "synthetic-random-seed3"   # the default storage
+    assert len(list((storage / "evaluations").glob("*.json"))) == 4
+    runs_before = sorted(p.name for p in (storage / "runs").iterdir())
+
+    rep = hmflow("report", "--storage", str(tmp_path / "hmflow-storage"), "--campaign",
+                 "synthetic-random-seed3", cwd=tmp_path)
+    assert rep.returncode == 0, rep.stdout + rep.stderr
+    assert "best call" in rep.stdout
+    assert sorted(p.name for p in (storage / "runs").iterdir()) == runs_before
+    doc = json.loads(sorted((storage / "report").glob("v*/report.json"))[-1].read_text())
+    assert doc["calls"] == 4 and set(doc["truth_distance"]) == {
+        "poro_mult", "permx_mult", "permy_mult", "permz_mult", "skin"}
+
+
+def test_report_for_an_unknown_campaign_is_a_clear_error(tmp_path):
+    (tmp_path / "store").mkdir()
+    rep = hmflow("report", "--storage", str(tmp_path / "store"), "--campaign", "nope", cwd=tmp_path)
+    assert rep.returncode == 2 and "no campaign 'nope'" in rep.stderr
+
+
+def test_run_on_a_bad_case_fails_before_any_simulation(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[case]\nname = "x"\ndeck = "missing.DATA"\nobserved = "missing.csv"\n')
+    run = hmflow("run", "--case", str(bad), "--budget", "2", cwd=tmp_path)
+    assert run.returncode == 2
+    assert "deck file not found" in run.stderr and "observed history file not found" in run.stderr
+    assert not (tmp_path / "hmflow-storage").exists()
