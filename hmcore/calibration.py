@@ -33,8 +33,9 @@ class Job:
 def feedback_of(record: dict) -> Feedback:
     """Reward and observed E (E, or the penalty of a failed run) from an evaluation record."""
     E = record.get("E")
-    e_obs = E if E is not None and math.isfinite(E) else record["penalty"]
-    return Feedback(float(record["reward"]), float(e_obs))
+    scored = E is not None and math.isfinite(E)
+    e_obs = E if scored else record["penalty"]
+    return Feedback(float(record["reward"]), float(e_obs), scored)
 
 
 def calibrate(proposer: Proposer, space: ParameterSpace,

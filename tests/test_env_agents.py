@@ -141,4 +141,22 @@ def test_make_proposer_rejects_unknown_agent():
 def test_feedback_for_failure_uses_penalty():
     from hmcore.calibration import feedback_of
 
-    assert feedback_of({"reward": -10.0, "E": None, "penalty": 10.0}) == Feedback(-10.0, 10.0)
+    assert feedback_of({"reward": -10.0, "E": None, "penalty": 10.0}) == Feedback(-10.0, 10.0, False)
+    assert feedback_of({"reward": -0.5, "E": 0.4, "penalty": 0.1}) == Feedback(-0.5, 0.4, True)
+
+
+def test_sac_learns_from_failures_capped_at_the_worst_scored_cost():
+    """A failed run's penalty (10) must not dwarf the E spread the critic has to learn."""
+    from hmcore.agents.base import Proposal
+
+    p = SACProposer(SPACE.dim, 0, SACSettings(learning_starts=4, failure_cost_factor=1.5))
+    props = p.ask(4)
+    p.tell(props, [Feedback(-0.2, 0.2), Feedback(-10.0, 10.0, False), Feedback(-0.6, 0.5),
+                   Feedback(-0.1, 0.1)])
+    np.testing.assert_allclose(p.learning_costs(), [0.2, 0.9, 0.6, 0.1])
+    rewards = p.model.replay_buffer.rewards[:4, 0]
+    np.testing.assert_allclose(rewards, -p.learning_costs() * p.settings.reward_scale, rtol=1e-6)
+    # a worse scored run raises the cap, and the buffered failure follows it
+    p.tell([Proposal(props[0].action, props[0].observation, 0)], [Feedback(-2.0, 2.0)])
+    assert p.learning_costs()[1] == pytest.approx(3.0)
+    assert p.model.replay_buffer.rewards[1, 0] == pytest.approx(-3.0 * p.settings.reward_scale)

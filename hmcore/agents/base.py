@@ -23,6 +23,7 @@ class Proposal:
 class Feedback:
     reward: float               # -E - P (or -failure_penalty - P)
     e_obs: float                # E of a scored run, the penalty of a failed one
+    scored: bool = True         # False for a failed run (no E: its reward is the fixed penalty)
 
 
 class Proposer(Protocol):

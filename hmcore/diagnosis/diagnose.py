@@ -46,7 +46,6 @@ from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSet
                                           run_lockstep)
 from hmcore.diagnosis.residuals import ObservationSet, analyse_residuals
 from hmcore.evaluation import score_responses
-from hmcore.parameters import ParameterSpace
 
 EvaluateBatch = Callable[[Case, list[dict[str, float]], str], list[Any]]
 
@@ -56,24 +55,49 @@ class DiagnosisSettings:
     """Knobs of a diagnosis. Thresholds are in chi-square units of the whitened residuals."""
 
     kinds: tuple[str, ...] = KINDS
-    confirm_top: int = 2
+    confirm_top: int = 4
     """Leading candidates confirmed by an actual recalibration."""
-    chi2_threshold: float = 30.0
+    chi2_threshold: float = 15.0
     """A candidate is beyond noise when its score test removes more than this (chi2 units).
-    Pure noise gives chi-square(1) values, the largest of ~30 candidates rarely above 15;
-    the default adds a margin for the imperfect noise model (set against the control cases)."""
-    fit_threshold: float = 30.0
+    Pure noise gives chi-square(1) values; in the synthetic controls and on PUNQ-S3's
+    measured history the largest of ~30 candidates was 2-4, so 15 leaves a margin of about
+    four for the imperfect noise model."""
+    fit_threshold: float = 15.0
     """A confirmed extension must lower the fitted SSR by more than this."""
     heldout_threshold: float = 6.0
     """... and the held-back SSR by more than this (and the held-back E must drop)."""
+    tie_band: float = 10.0
+    """Recalibrated candidates whose fitted SSR is within this of the best fit the fitted
+    history cannot tell apart: the held-back history orders them."""
     calibration: LMSettings = field(default_factory=lambda: LMSettings(
-        fd_step=0.1, max_iter=10, max_evaluations=40, trials=2))
+        fd_step=0.1, max_iter=10, max_evaluations=40, trials=2, ftol=0.02))
+    """Phase 1 of the calibration (weighted least squares before the noise is refined)."""
+    polish: LMSettings = field(default_factory=lambda: LMSettings(
+        fd_step=0.1, max_iter=4, max_evaluations=16, trials=2, ftol=0.005))
+    """Phase 2 of the calibration (prewhitened residuals)."""
     recalibration: LMSettings = field(default_factory=lambda: LMSettings(
-        fd_step=0.1, max_iter=5, max_evaluations=8, trials=1))
+        fd_step=0.1, max_iter=8, max_evaluations=12, trials=1, ftol=0.005))
+    """Each leading candidate's recalibration (warm start, Broyden updates, lockstep)."""
+    refine: LMSettings = field(default_factory=lambda: LMSettings(
+        fd_step=0.1, max_iter=3, max_evaluations=12, trials=1, ftol=0.005))
+    """The best recalibrated candidates continue from a fresh finite-difference Jacobian."""
+    refine_top: int = 2
     global_fd_step: float = 0.1
+    reuse_jacobian_within: float = 0.15
+    """Reuse the calibration's last finite-difference Jacobian of the globals for the ranking
+    when the calibration moved less than this (scaled coordinates) since computing it."""
     heldout_fraction: float = 0.25
     """Held back when the case sets no history_end_days: this share of the record."""
     plots: bool = True
+    polish_given: bool = True
+    """Polish a given calibrated vector (e.g. a campaign's best) with phase 2 of the
+    calibration, so that an extension's gain is not the globals' unfinished fit."""
+    workers: int = 2
+    """Simulations the evaluator runs at once (recalibration batches are filled to it)."""
+    budget: int | None = None
+    """Cap on simulator calls (None: as many as the steps need). The ranking needs one run per
+    candidate (+ one per global parameter); the calibration and the recalibrations share the
+    rest."""
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -228,7 +252,8 @@ class Diagnosis:
 
     def calibrate(self, calibrated: dict[str, float] | None = None,
                   initial: dict[str, float] | None = None) -> dict:
-        """Calibrate the case's parameters (or evaluate ``calibrated`` once).
+        """Calibrate the case's parameters (or start from ``calibrated``, e.g. a campaign's
+        best: phase 1 is skipped, phase 2 still polishes it unless ``polish_given`` is off).
 
         Phase 1: weighted least squares (sigma from the data or estimated from the observed
         series, no time correlation) from ``initial`` (default: the base model as given).
@@ -253,8 +278,8 @@ class Diagnosis:
             start = {**self.default_start(), **(initial or {})}
             wls = obs0.without_time_correlation()
             lm = self._minimise(LevenbergMarquardt(self.coords.to_u(start),
-                                                   self.settings.calibration, label="phase 1"),
-                                wls)
+                                                   self._capped(self.settings.calibration, 0.3),
+                                                   label="phase 1"), wls)
             run = lm.best.payload
             phases.append(self._lm_doc("1: weighted least squares, noise from the observed "
                                        "series", lm, start))
@@ -262,20 +287,21 @@ class Diagnosis:
         self.obs = obs0.refine(run.responses, self.case.observed)
         run = self._rescore(run)
         u = self.coords.to_u(run.values)
-        if calibrated is None:
-            p2 = dataclasses.replace(self.settings.calibration,
-                                     max_iter=max(2, self.settings.calibration.max_iter // 2))
+        if calibrated is None or self.settings.polish_given:
             from hmcore.diagnosis.recalibrate import Point
 
-            lm = self._minimise(LevenbergMarquardt(u, p2, start=Point(u, run.r_fit, run),
+            lm = self._minimise(LevenbergMarquardt(u, self._capped(self.settings.polish, 0.15),
+                                                   start=Point(u, run.r_fit, run),
                                                    label="phase 2"), self.obs)
             run, u = lm.best.payload, lm.best.u
-            if lm.jacobian_is_fresh and lm.J is not None:
-                self.J_global = lm.J
+            near = self.settings.reuse_jacobian_within
+            if lm.J_fd is not None and np.max(np.abs(lm.u_fd - u)) <= near:
+                self.J_global = lm.J_fd  # close enough to the final point: no new differences
             phases.append(self._lm_doc("2: prewhitened residuals, noise from the residuals",
                                        lm, None))
         self.base, self.u_base = run, u
-        lm_doc = {"method": "given" if calibrated is not None else "levenberg-marquardt",
+        lm_doc = {"method": ("levenberg-marquardt" if calibrated is None else
+                             "given, polished" if self.settings.polish_given else "given"),
                   "runs": sum(p["runs"] for p in phases), "phases": phases,
                   "noise_initial": obs0.noise_report, "noise": self.obs.noise_report}
         sc = self._scores(self.base)
@@ -288,6 +314,13 @@ class Diagnosis:
         self.log(f"calibrated: E = {sc['E']:.5g}, held-back E = {sc['E_heldout']:.5g}, "
                  f"SSR fit {sc['ssr_fit']:.1f} over {self.obs.n_fit} points")
         return self.calibration
+
+    def _capped(self, lm: LMSettings, share: float) -> LMSettings:
+        """``lm`` with its evaluations capped to ``share`` of the budget (when one is set)."""
+        if self.settings.budget is None:
+            return lm
+        cap = max(self.coords.dim + 3, int(share * self.settings.budget))
+        return dataclasses.replace(lm, max_evaluations=min(lm.max_evaluations, cap))
 
     def _minimise(self, lm: LevenbergMarquardt, obs: ObservationSet) -> LevenbergMarquardt:
         def evaluate(batch):
@@ -333,6 +366,12 @@ class Diagnosis:
         for c in self.candidates:
             jobs.append({**values0, c.name: c.probe})
             tags.append(("candidate", c))
+        if s.budget is not None and self.n_runs + len(jobs) > s.budget:
+            raise ValueError(f"budget {s.budget} leaves {s.budget - self.n_runs} simulator calls "
+                             f"after the calibration, but the ranking needs {len(jobs)} (one per "
+                             "candidate extension"
+                             f"{' and per global parameter' if self.J_global is None else ''}); "
+                             "raise the budget or limit the kinds of extensions")
         runs = self._run(self.union_case, jobs, "ranking")
         r0 = self.base.r_fit
         if self.J_global is None:
@@ -342,7 +381,10 @@ class Diagnosis:
                     i, h = info
                     J[:, i] = (run.r_fit - r0) / h
             self.J_global = J
-        Q = projector_basis(self.J_global)
+        # globals held at a bound they press against cannot take over a candidate's step
+        g = self.J_global.T @ r0
+        held = ((self.u_base >= 1 - 1e-6) & (g < 0)) | ((self.u_base <= -1 + 1e-6) & (g > 0))
+        Q = projector_basis(self.J_global[:, ~held])
         rows = []
         for (kind, c), run in zip(tags, runs):
             if kind != "candidate":
@@ -369,6 +411,7 @@ class Diagnosis:
         by_id = {c.id: c for c in self.candidates}
         self.ranking = {
             "chi2_threshold": s.chi2_threshold, "ssr_fit": float(r0 @ r0), "n_fit": int(r0.size),
+            "globals_held_at_bounds": [n for n, h in zip(self.coords.names, held) if h],
             "order": order, "beyond_noise": beyond,
             "candidates": [{**by_id[row["id"]].machine(), "description":
                             by_id[row["id"]].description, **row} for row in rows],
@@ -405,6 +448,11 @@ class Diagnosis:
         s = self.settings
         by_id = {c.id: c for c in self.candidates}
         ids = [m["id"] for m in self.extension.get("models", [])]
+        lm_settings = s.recalibration
+        if s.budget is not None and ids:
+            per = (s.budget - self.n_runs) // len(ids)
+            lm_settings = dataclasses.replace(lm_settings, max_evaluations=min(
+                lm_settings.max_evaluations, max(per, 0)))
         minimisers, coords, cases = [], [], []
         for cid in ids:
             c = by_id[cid]
@@ -414,7 +462,7 @@ class Diagnosis:
             u0 = np.concatenate([self.u_base, u_c0])
             J0 = np.column_stack([self.J_global, self.sensitivity[cid]])
             start = _StartPoint(u0, self.base)
-            lm = LevenbergMarquardt(u0, s.recalibration, start=start.point(), jacobian=J0,
+            lm = LevenbergMarquardt(u0, lm_settings, start=start.point(), jacobian=J0,
                                     label=cid)
             minimisers.append(lm)
             coords.append(co)
@@ -425,10 +473,41 @@ class Diagnosis:
             runs = self._run(self.union_case, values, "recalibration")
             return [(run.r_fit, run) for run in runs]
 
-        run_lockstep(minimisers, evaluate)
+        run_lockstep(minimisers, evaluate, self.settings.workers)
+        # the contenders (best fits, each beyond noise) continue from a fresh finite-difference
+        # Jacobian: Broyden's updates stall in the curved valleys the globals make
+        contenders = sorted((k for k, m in enumerate(minimisers) if m.best is not None
+                             and self.base.ssr_fit - m.best.ssr > s.fit_threshold),
+                            key=lambda k: minimisers[k].best.ssr)[: s.refine_top]
+        refine_settings = s.refine
+        if s.budget is not None and contenders:
+            left = (s.budget - self.n_runs) // len(contenders)
+            refine_settings = dataclasses.replace(refine_settings, max_evaluations=min(
+                refine_settings.max_evaluations, max(left, 0)))
+            contenders = contenders if left > len(self.coords.names) + 1 else []
+        refined = {}
+        for k in contenders:
+            b = minimisers[k].best
+            refined[k] = LevenbergMarquardt(b.u, refine_settings, start=b,
+                                            label=f"{ids[k]} (refined)")
+        if refined:
+            keys = list(refined)
+
+            def evaluate_refined(batch):
+                return evaluate([(keys[j], u) for j, u in batch])
+
+            run_lockstep([refined[k] for k in keys], evaluate_refined, self.settings.workers)
         base_sc = self._scores(self.base)
         self.confirmed, self.confirmed_runs = {}, {}
-        for cid, lm in zip(ids, minimisers):
+        for k, (cid, lm) in enumerate(zip(ids, minimisers)):
+            history = [dataclasses.asdict(h) for h in lm.history]
+            n_eval, reason, iters = lm.n_evaluations, lm.reason, lm.iteration
+            if k in refined and refined[k].best.ssr <= lm.best.ssr:
+                r = refined[k]
+                history += [{**dataclasses.asdict(h), "note": "refined " + h.note}
+                            for h in r.history]
+                n_eval, reason, iters = n_eval + r.n_evaluations, r.reason, iters + r.iteration
+                lm = r
             run = lm.best.payload
             sc = self._scores(run) if run is not self.base else base_sc
             d_fit = base_sc["ssr_fit"] - sc["ssr_fit"]
@@ -440,7 +519,7 @@ class Diagnosis:
             self.confirmed_runs[cid] = run
             self.confirmed[cid] = {
                 "id": cid, "values": run.values, "value": run.values[by_id[cid].name],
-                "runs": lm.n_evaluations, "iterations": lm.iteration, "stopped": lm.reason,
+                "runs": n_eval, "iterations": iters, "stopped": reason, "refined": k in refined,
                 "ssr_fit_before": base_sc["ssr_fit"], "ssr_fit_after": sc["ssr_fit"],
                 "ssr_heldout_before": base_sc["ssr_heldout"], "ssr_heldout_after": sc["ssr_heldout"],
                 "delta_ssr_fit": d_fit, "delta_ssr_heldout": d_ho,
@@ -449,7 +528,7 @@ class Diagnosis:
                 "fit_beyond_noise": bool(fit_ok), "heldout_beyond_noise": bool(ho_ok),
                 "per_well_response_after": sc["per_well_response"],
                 "per_well_response_heldout_after": _per_well_heldout(self.case, run.responses),
-                "history": [dataclasses.asdict(h) for h in lm.history]}
+                "history": history}
             self.log(f"recalibrated {cid}: SSR fit {base_sc['ssr_fit']:.1f} -> "
                      f"{sc['ssr_fit']:.1f}, held-back {base_sc['ssr_heldout']:.1f} -> "
                      f"{sc['ssr_heldout']:.1f}; E {base_sc['E']:.4g} -> {sc['E']:.4g}, "
@@ -479,14 +558,15 @@ class Diagnosis:
                                              "heldout_after", "fit_beyond_noise",
                                              "heldout_beyond_noise", "runs")}}
 
-        confirmed_ok = sorted([k for k, v in self.confirmed.items() if v["fit_beyond_noise"]],
-                              key=lambda k: -self.confirmed[k]["delta_ssr_fit"])
+        confirmed_ok = self._order_confirmed(
+            [k for k, v in self.confirmed.items() if v["fit_beyond_noise"]])
         confirmed_bad = [k for k in self.confirmed if k not in confirmed_ok]
         unconfirmed = [k for k in self.ranking["beyond_noise"] if k not in self.confirmed]
         rest = [k for k in self.ranking["order"]
                 if k not in confirmed_ok and k not in confirmed_bad and k not in unconfirmed]
-        causes = [cause(k, "recalibrated: the fitted misfit drops beyond noise")
-                  for k in confirmed_ok]
+        causes = [cause(k, "recalibrated: the fitted misfit drops beyond noise"
+                        + ("; as good a fit as another candidate, the held-back history prefers it"
+                           if self.confirmed[k].get("tied") else "")) for k in confirmed_ok]
         causes += [cause(k, "score test beyond noise (not recalibrated)") for k in unconfirmed]
         top_chi2 = max([self.scores[k].chi2 for k in self.scores] or [0.0])
         causes.append({"kind": "none", "wells": [], "layers": [], "score": None,
@@ -562,6 +642,19 @@ class Diagnosis:
                      "wall_time_s": time.perf_counter() - self.started, "steps_s": self.timings},
         }
         return self.document
+
+    def _order_confirmed(self, ids: list[str]) -> list[str]:
+        """By fitted SSR after recalibration; those within ``tie_band`` of the best fit are
+        ordered by their held-back SSR (the fitted history cannot tell them apart)."""
+        if not ids:
+            return []
+        fit = {k: self.confirmed[k]["ssr_fit_after"] for k in ids}
+        best = min(fit.values())
+        tied = [k for k in ids if fit[k] <= best + self.settings.tie_band]
+        for k in ids:
+            self.confirmed[k]["tied"] = len(tied) > 1 and k in tied
+        tied.sort(key=lambda k: self.confirmed[k]["ssr_heldout_after"])
+        return tied + sorted([k for k in ids if k not in tied], key=lambda k: fit[k])
 
     def report(self, out_dir: Path | None = None) -> dict:
         """Write diagnosis.json, report.md and the residual plots into ``out_dir``."""

@@ -298,7 +298,8 @@ def relative_permeability(info: DeckInfo, space: ParameterSpace,
                       description=f"exponent applied to the normalised {short} curve of {table}")
         out.append(Candidate(f"relative_permeability:{phase}", "relative_permeability", p, (), (),
                              f"the {phase} relative permeability curve has another shape "
-                             f"({short} in {table} rises earlier or later with saturation)", 1.0, PROBE["relative_permeability"],
+                             f"({short} in {table} rises earlier or later with saturation)",
+                             1.0, PROBE["relative_permeability"],
                              {"phase": phase, "table": table}))
     return out
 

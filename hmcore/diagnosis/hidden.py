@@ -33,13 +33,19 @@ STRENGTH = {
     # skin increments (well_skin) / exponents (relative_permeability)
     "well_skin": ((-6.0, -4.0), (8.0, 15.0), 0.25),
     "regional_permeability": ((0.15, 0.35), (3.0, 6.0), 0.6),
-    "layer_permeability": ((0.2, 0.35), (2.5, 4.0), 0.5),
-    "vertical_permeability": ((0.005, 0.02), (20.0, 50.0), 0.7),
-    "aquifer_strength": ((0.08, 0.2), (5.0, 10.0), 0.5),
+    "layer_permeability": ((0.15, 0.3), (3.0, 5.0), 0.5),
+    "vertical_permeability": ((0.001, 0.01), (30.0, 100.0), 1.0),
+    "aquifer_strength": ((0.03, 0.12), (5.0, 15.0), 0.5),
     "fault_transmissibility": ((1e-3, 1e-2), (1e-3, 1e-2), 1.0),
-    "relative_permeability": ((0.45, 0.6), (1.8, 2.5), 0.5),
+    "relative_permeability": ((0.4, 0.55), (2.2, 2.9), 0.5),
 }
-"""Realistic ranges of hidden effects, log-uniform for multipliers."""
+"""Realistic ranges of hidden effects, log-uniform for multipliers. Vertical permeability is
+drawn as a baffle (kv cut 100-1000 times): raising kv changes nothing once it is not the
+bottleneck. An aquifer productivity index is drawn weaker (see :data:`STRENGTH_OVERRIDES`)."""
+
+STRENGTH_OVERRIDES = {"aquifer_strength:AQUFETP:6": ((0.005, 0.03), (0.005, 0.03), 1.0)}
+"""Per-candidate ranges (id prefix): a Fetkovich aquifer's productivity index matters only
+when it, not the grid, limits the influx, i.e. when it is much weaker than the deck's."""
 
 
 @dataclass(frozen=True)
@@ -75,7 +81,8 @@ def draw_effect(kind: str, seed: int, info: DeckInfo, space: ParameterSpace,
     if not cands:
         raise ValueError(f"the deck offers no {kind} candidate")
     c = cands[int(rng.integers(len(cands)))]
-    (dlo, dhi), (ulo, uhi), p_down = STRENGTH[kind]
+    spec = next((v for k, v in STRENGTH_OVERRIDES.items() if c.id.startswith(k)), STRENGTH[kind])
+    (dlo, dhi), (ulo, uhi), p_down = spec
     lo, hi = (dlo, dhi) if rng.random() < p_down else (ulo, uhi)
     if kind == "well_skin":
         value = c.neutral + float(rng.uniform(lo, hi))
@@ -86,19 +93,22 @@ def draw_effect(kind: str, seed: int, info: DeckInfo, space: ParameterSpace,
 
 
 # ----------------------------------------------------------------------------- synthetic case
-def synthetic_deck_info(seed: int) -> DeckInfo:
-    """DeckInfo of the synthetic base deck of ``seed`` (written to a temp dir; no simulation)."""
+def synthetic_deck_info(seed: int, directory: Path | None = None) -> DeckInfo:
+    """DeckInfo of the synthetic base deck of ``seed``, written into ``directory`` (default: a
+    new temporary directory, left in place since the DeckInfo points at the file)."""
     from hmcore.synthetic import DECK_NAME, make_fields, render_deck
 
     field_rng, _ = np.random.default_rng(seed).spawn(2)
-    with tempfile.TemporaryDirectory(prefix="hmflow-hidden-") as tmp:
-        deck = Path(tmp) / DECK_NAME
-        deck.write_text(render_deck(make_fields(field_rng), seed))
-        return DeckInfo.inspect(deck)
+    directory = Path(directory or tempfile.mkdtemp(prefix="hmflow-hidden-deck-"))
+    directory.mkdir(parents=True, exist_ok=True)
+    deck = directory / DECK_NAME
+    deck.write_text(render_deck(make_fields(field_rng), seed))
+    return DeckInfo.inspect(deck)
 
 
 def write_hidden_synthetic_case(dest: Path, seed: int, kind: str | None = None,
-                                effect: HiddenEffect | None = None) -> tuple[Path, HiddenEffect | None]:
+                                effect: HiddenEffect | None = None
+                                ) -> tuple[Path, HiddenEffect | None]:
     """The synthetic case of ``seed`` whose truth hides ``effect`` (or one drawn of ``kind``;
     neither: the control, nothing hidden). Returns (case.toml, effect); the effect is also
     written to ``dest/hidden_effect.json``."""
@@ -106,7 +116,8 @@ def write_hidden_synthetic_case(dest: Path, seed: int, kind: str | None = None,
 
     space = ParameterSpace.reference()
     if effect is None and kind is not None:
-        effect = draw_effect(kind, seed, synthetic_deck_info(seed), space, SYNTHETIC_TRUTH)
+        info = synthetic_deck_info(seed, Path(dest) / "base-deck")
+        effect = draw_effect(kind, seed, info, space, SYNTHETIC_TRUTH)
     if effect is None:
         case = write_synthetic_case(dest, seed)
     else:
@@ -179,12 +190,14 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
                            space: ParameterSpace | None = None, kind: str | None = None,
                            effect: HiddenEffect | None = None, history_end_days: float,
                            with_sigma: bool = True, name: str = "hidden",
+                           end_days: float | None = None,
                            simulator=None) -> tuple[Path, HiddenEffect | None]:
     """A case on ``deck`` whose measured data hide ``effect`` (or one drawn of ``kind``).
 
     ``truth``: values of the calibration ``space`` (default: the reference five) in the truth.
     Writes ``observed.csv``, ``truth_responses.csv``, ``hidden_effect.json`` and ``case.toml``
-    (deck given by absolute path) into ``dest``; returns (case.toml, effect).
+    (deck given by absolute path) into ``dest``; returns (case.toml, effect). ``end_days``
+    ends the measured record (default: the end of the schedule).
     """
     from hmcore.deck import prepare_run_deck
     from hmcore.responses import read_responses
@@ -207,6 +220,8 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
     truth_df = read_responses(result.summary_path, sorted(info.wells))
     truth_df.to_csv(dest / "truth_responses.csv", index=False)
     obs = noisy_history(truth_df, np.random.default_rng([seed, 7919]))
+    if end_days is not None:
+        obs = obs[obs.days <= end_days + 1e-9]
     if not with_sigma:
         obs = obs.drop(columns=["sigma"])
     obs.to_csv(dest / "observed.csv", index=False, float_format="%.6g")
@@ -217,3 +232,39 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
     case.write_text(f'[case]\nname = "{name}"\ndeck = "{deck}"\nobserved = "observed.csv"\n'
                     f"history_end_days = {history_end_days:g}\n")
     return case, effect
+
+
+# ----------------------------------------------------------------------------- scoring a finding
+def judge(doc: dict, effect: HiddenEffect | None) -> dict:
+    """Did the diagnosis ``doc`` find the hidden ``effect`` (None: the control)?
+
+    ``ranked_first``: the first cause has the hidden kind and, where the kind names one, the
+    same well (well skin, regional permeability), layer (layer and vertical permeability) or
+    candidate (fault plane, aquifer item, relperm table); ``selected``: the same candidate was
+    accepted; ``heldout_improved``: the held-back E and whitened SSR went down. For the control
+    all three mean "reported none". ``found`` = all three.
+    """
+    first = doc["causes"][0]
+    top = [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:4] if c["chi2"] is not None]
+    g = doc["gain"]
+    if effect is None:
+        ok = first["kind"] == "none" and doc["selected"] is None
+        return {"hidden": None, "ranked_first": ok, "selected": ok, "heldout_improved": ok,
+                "found": ok, "ranking": top, "verdict": doc["verdict"]}
+    h = effect.candidate
+    same = first["kind"] == h.kind
+    if h.kind in ("well_skin", "regional_permeability"):
+        same = same and first["wells"] == list(h.wells)
+    elif h.kind in ("layer_permeability", "vertical_permeability"):
+        same = same and first["layers"] == list(h.layers)
+    else:
+        same = same and first["id"] == h.id
+    sel = doc["selected"] is not None and doc["selected"]["id"] == h.id
+    held = (g["heldout_after"] is not None and g["heldout_before"] is not None
+            and g["heldout_after"] < g["heldout_before"]
+            and g["ssr_heldout_after"] < g["ssr_heldout_before"])
+    return {"hidden": h.id, "value": effect.value, "ranked_first": bool(same),
+            "selected": bool(sel), "heldout_improved": bool(held),
+            "found": bool(same and sel and held), "ranking": top, "verdict": doc["verdict"],
+            "gain": {k: g[k] for k in ("fit_before", "fit_after", "heldout_before",
+                                       "heldout_after")}}

@@ -18,7 +18,7 @@ held) and by projection of each trial onto the box.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -37,22 +37,23 @@ class Coordinates:
         self.log = np.array([p.kind in LOG_KINDS for p in self.parameters])
         lo = np.array([p.low for p in self.parameters], float)
         hi = np.array([p.high for p in self.parameters], float)
-        self._lo = np.where(self.log, np.log(lo), lo)
-        self._hi = np.where(self.log, np.log(hi), hi)
+        self._lo, self._hi = lo.copy(), hi.copy()
+        self._lo[self.log] = np.log(lo[self.log])
+        self._hi[self.log] = np.log(hi[self.log])
 
     @property
     def dim(self) -> int:
         return len(self.parameters)
 
     def to_u(self, values: dict[str, float]) -> np.ndarray:
-        x = np.array([float(values[n]) for n in self.names])
-        t = np.where(self.log, np.log(np.maximum(x, 1e-300)), x)
+        t = np.array([float(values[n]) for n in self.names])
+        t[self.log] = np.log(np.maximum(t[self.log], 1e-300))
         return 2.0 * (t - self._lo) / (self._hi - self._lo) - 1.0
 
     def to_values(self, u: np.ndarray) -> dict[str, float]:
         u = np.clip(np.asarray(u, float), -1.0, 1.0)
-        t = self._lo + (u + 1.0) * 0.5 * (self._hi - self._lo)
-        x = np.where(self.log, np.exp(t), t)
+        x = self._lo + (u + 1.0) * 0.5 * (self._hi - self._lo)
+        x[self.log] = np.exp(x[self.log])
         return {n: float(v) for n, v in zip(self.names, x)}
 
 
@@ -111,6 +112,9 @@ class LevenbergMarquardt:
         self.label = label
         self.best: Point | None = start
         self.J = None if jacobian is None else np.array(jacobian, float)
+        self.J_fd: np.ndarray | None = None
+        """The last finite-difference Jacobian (at ``u_fd``), kept apart from Broyden's."""
+        self.u_fd: np.ndarray | None = None
         self.jacobian_is_fresh = False
         self.lam = self.s.lam0
         self.iteration = 0
@@ -126,7 +130,13 @@ class LevenbergMarquardt:
             raise ValueError("the start point of a recalibration must have a residual vector")
 
     # ------------------------------------------------------------------ ask
-    def ask(self) -> list[np.ndarray]:
+    @property
+    def stepping(self) -> bool:
+        """True when the next points are trial steps (start point and Jacobian known)."""
+        return not self.done and self.best is not None and self.J is not None
+
+    def ask(self, extra_trials: int = 0) -> list[np.ndarray]:
+        """Points to simulate next; ``extra_trials`` more damping values when stepping."""
         if self.done:
             return []
         if self.n_evaluations >= self.s.max_evaluations:
@@ -140,7 +150,7 @@ class LevenbergMarquardt:
         else:
             if self.iteration >= self.s.max_iter:
                 return self._finish("iteration limit")
-            trials = self._trial_points()
+            trials = self._trial_points(self.s.trials + extra_trials)
             if not trials:
                 return self._finish("no descent direction inside the bounds (converged)")
             self._pending = trials
@@ -155,7 +165,7 @@ class LevenbergMarquardt:
             pts.append(("fd", v, (i, h)))
         return pts
 
-    def _trial_points(self) -> list[tuple[str, np.ndarray, Any]]:
+    def _trial_points(self, n_trials: int) -> list[tuple[str, np.ndarray, Any]]:
         J, r, u = self.J, self.best.r, self.best.u
         g = J.T @ r
         A = J.T @ J
@@ -168,7 +178,7 @@ class LevenbergMarquardt:
         d = np.diag(Af).copy()
         d = np.maximum(d, 1e-6 * max(float(d.max()), 1e-12))
         pts, seen = [], []
-        for k in range(self.s.trials):
+        for k in range(n_trials):
             lam = self.lam * (10.0 ** k)
             try:
                 step = np.linalg.solve(Af + lam * np.diag(d), -gf)
@@ -208,6 +218,7 @@ class LevenbergMarquardt:
                     J[:, i] = (q.r - self.best.r) / h
             self.J = J
             self.jacobian_is_fresh = True
+            self.J_fd, self.u_fd = J.copy(), self.best.u.copy()
         trials = [(p, q) for p, q in zip(pending, pts) if p[0] == "trial"]
         if trials:
             self._after_trials([p for p, _ in trials], [q for _, q in trials])
@@ -261,18 +272,28 @@ class LevenbergMarquardt:
 
 
 def run_lockstep(minimisers: list[LevenbergMarquardt],
-                 evaluate: Callable[[list[tuple[int, np.ndarray]]], list[tuple[np.ndarray | None, Any]]],
-                 ) -> None:
+                 evaluate: Callable[[list[tuple[int, np.ndarray]]],
+                                    list[tuple[np.ndarray | None, Any]]],
+                 workers: int = 1) -> None:
     """Drive several minimisers together: each round, every unfinished one asks for its points
-    and all points go to ``evaluate`` in one batch (``[(minimiser index, u), ...]``)."""
+    and all points go to ``evaluate`` in one batch (``[(minimiser index, u), ...]``). When the
+    batch would leave some of ``workers`` idle, the best minimisers that are stepping get one
+    more damping trial each to fill it."""
     while True:
-        asks = [(k, m.ask()) for k, m in enumerate(minimisers) if not m.done]
-        asks = [(k, pts) for k, pts in asks if pts]
+        asks = {k: m.ask() for k, m in enumerate(minimisers) if not m.done}
+        asks = {k: pts for k, pts in asks.items() if pts}
         if not asks:
             return
-        batch = [(k, u) for k, pts in asks for u in pts]
+        deficit = (-sum(len(p) for p in asks.values())) % max(workers, 1)
+        order = sorted((k for k in asks if minimisers[k].stepping),
+                       key=lambda k: minimisers[k].best.ssr)
+        for k in order[:deficit]:
+            more = minimisers[k].ask(extra_trials=1)
+            if more:
+                asks[k] = more
+        batch = [(k, u) for k, pts in asks.items() for u in pts]
         results = evaluate(batch)
         pos = 0
-        for k, pts in asks:
+        for k, pts in asks.items():
             minimisers[k].tell(results[pos:pos + len(pts)])
             pos += len(pts)

@@ -61,9 +61,9 @@ def well_table(doc: dict) -> str:
 def markdown_report(doc: dict) -> str:
     sel = doc.get("selected")
     lines = [f"# Diagnosis of case `{doc['case']}`", "",
-             f"Calibrated parameters: " + ", ".join(f"{k} = {_f(v)}"
-                                                      for k, v in doc["calibrated"].items()),
-             f"; history fitted up to day {_f(doc['history_end_days'], 6)}, later data held "
+             "Calibrated parameters: " + ", ".join(f"{k} = {_f(v)}"
+                                                     for k, v in doc["calibrated"].items())
+             + f"; history fitted up to day {_f(doc['history_end_days'], 6)}, later data held "
              "back.", "", "## Verdict", "", doc["verdict"], "",
              "Selected extension: " + (f"**{sel['kind']}** ({sel['id']}) - {sel['description']}"
                                        if sel else "**none**"), "",
@@ -105,8 +105,9 @@ def plot_wells(obs: ObservationSet, base: pd.DataFrame, extended: pd.DataFrame |
                 if resp is None:
                     continue
                 s = resp[(resp.well == well) & (resp.quantity == q)].sort_values("days")
-                if q != "WBHP":
-                    s = s[s.value > 0] if q == "WGOR" else s
+                if q != "WBHP":  # GOR and water cut are not defined while the well is shut
+                    oil = resp[(resp.well == well) & (resp.quantity == "WOPR")]
+                    s = s[s.days.isin(oil.days[oil.value > 0])]
                 ax.plot(s.days, s.value, style, lw=1.4, label=name)
             if obs.history_end_days is not None:
                 ax.axvline(obs.history_end_days, color="gray", ls="--", lw=1)

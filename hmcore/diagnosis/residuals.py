@@ -32,6 +32,9 @@ QUANTITY_OF = {v: k for k, v in RESPONSE_OF.items()}
 
 SIGMA_FLOOR = {"WBHP": 0.3, "WWCT": 0.01, "WGOR_REL": 0.03, "RATE_REL": 0.02}
 """Smallest noise level an estimate may give: bar, fraction, relative GOR, relative rate."""
+AFTER_BREAKTHROUGH_DEFAULT = {"WWCT": 0.05, "WGOR": 0.25}
+"""Noise after water / gas breakthrough when no well's record allows an estimate: typical
+test-separator uncertainty (PUNQ-S3's description uses the same: WCT 0.05, GOR 25 %)."""
 OIL_RATE_SIGMA_REL = 0.05
 """Noise of a measured oil rate without sigma (usually the rate control): 5 % of the value."""
 OIL_RATE_SIGMA_MIN = 1.0
@@ -42,61 +45,60 @@ MAX_RHO = 0.9
 
 
 # ============================================================================ noise estimation
-def robust_variogram(x: np.ndarray, max_lag: int) -> np.ndarray:
-    """Robust semivariogram ``gamma(h) = (1.4826 MAD(x_{t+h} - x_t))^2 / 2``, h = 1..max_lag.
+def _winsorized_var(d: np.ndarray, clip: float = 4.0) -> float:
+    """Variance of ``d`` about its median with values beyond ``clip`` robust SDs clipped."""
+    if d.size < 2:
+        return float("nan")
+    m = float(np.median(d))
+    s = 1.4826 * float(np.median(np.abs(d - m)))
+    if s <= 0:
+        return 0.0
+    return float(np.mean(np.clip(d - m, -clip * s, clip * s) ** 2))
 
-    The differences are centred on their median, so a linear trend does not count as noise;
-    jumps (rate changes, breakthroughs) are outliers the MAD ignores. NaN where too short.
+
+def robust_variogram(x: np.ndarray, max_lag: int) -> np.ndarray:
+    """Robust semivariogram ``gamma(h) = var(x_{t+h} - x_t) / 2``, h = 1..max_lag.
+
+    The differences are centred on their median, so a linear trend does not count as noise,
+    and clipped at 4 robust standard deviations, so jumps (rate changes, breakthroughs) do not
+    either. NaN where the series is too short.
     """
     x = np.asarray(x, float)
     out = np.full(max_lag, np.nan)
     for h in range(1, max_lag + 1):
         if x.size - h >= 3:
-            d = x[h:] - x[:-h]
-            mad = np.median(np.abs(d - np.median(d)))
-            out[h - 1] = (1.4826 * mad) ** 2 / 2.0
+            out[h - 1] = _winsorized_var(x[h:] - x[:-h]) / 2.0
     return out
 
 
-def estimate_noise(series: list[np.ndarray], max_lag: int = 3, rho: float | None = None
+def estimate_noise(series: list[np.ndarray], rho: float | None = None
                    ) -> tuple[list[float], float]:
     """Noise level of each series and one shared lag-1 correlation, from robust variograms.
 
     Model: observation = smooth signal + sigma_s * AR(1) noise with correlation ``rho``, so the
-    noise part of the variogram is ``sigma_s^2 (1 - rho^h)``. ``rho`` (unless given) is chosen
-    on a grid to fit every series' variogram shape at once; each ``sigma_s^2`` is then the
-    least-squares level. Series shorter than ``max_lag + 3`` get NaN (no estimate).
+    noise part of the variogram is ``sigma_s^2 (1 - rho^h)`` and ``gamma(2) / gamma(1) =
+    1 + rho``. ``rho`` (unless given) is that ratio pooled over the series (each weighted by
+    its length, on its own scale); ``sigma_s^2 = (gamma(1) + gamma(2)) / ((1 - rho) +
+    (1 - rho^2))``. Only lags 1 and 2 are used: a smooth misfit left in a series adds
+    ``c h^2`` to the variogram and biases the estimate less the shorter the lags. Series
+    shorter than 5 get NaN (no estimate).
     """
-    grams = [robust_variogram(s, max_lag) for s in series]
-    lags = np.arange(1, max_lag + 1, dtype=float)
-    usable = [g for g in grams if np.isfinite(g).all() and g.max() > 0]
-
-    def levels(r: float, g: np.ndarray) -> float:
-        shape = 1.0 - r ** lags
-        return float(np.dot(g, shape) / np.dot(shape, shape))
-
+    grams = [robust_variogram(s, 2) if len(s) >= 5 else np.full(2, np.nan) for s in series]
     if rho is None:
-        if usable:
-            grid = np.linspace(0.0, 0.9, 19)
-            cost = []
-            for r in grid:
-                c = 0.0
-                for g in usable:
-                    s2 = levels(r, g)
-                    c += float(np.sum((g / max(s2, 1e-300) - (1.0 - r ** lags)) ** 2))
-                cost.append(c)
-            rho = float(grid[int(np.argmin(cost))])
-        else:
-            rho = 0.0
+        num = den = 0.0
+        for s, g in zip(series, grams):
+            if np.isfinite(g).all() and g.sum() > 0:
+                num += len(s) * g[1] / g.sum()
+                den += len(s) * g[0] / g.sum()
+        rho = num / den - 1.0 if den > 0 else 0.0
+    rho = float(min(max(rho, 0.0), MAX_RHO))
     sig = []
     for g in grams:
-        if np.isfinite(g).all() and g.max() > 0:
-            sig.append(math.sqrt(max(levels(rho, g), 0.0)))
-        elif np.isfinite(g).all():
-            sig.append(0.0)
+        if np.isfinite(g).all():
+            sig.append(math.sqrt(max(g.sum() / ((1.0 - rho) + (1.0 - rho * rho)), 0.0)))
         else:
             sig.append(float("nan"))
-    return sig, float(rho)
+    return sig, rho
 
 
 def _breakthrough_index(values: np.ndarray, threshold: float, persist: int = 2) -> int | None:
@@ -283,7 +285,11 @@ def _fill_sigma(df: pd.DataFrame, resid: np.ndarray | None = None
     """Fill missing sigma by robust estimation; return rho per quantity and a report.
 
     ``resid`` (simulated - observed per row, optional): estimate from the residual series
-    instead of the observed ones.
+    instead of the observed ones. Only rows of the fitted period are used (the held-back
+    data must not set their own noise level). A segment too short to estimate takes the
+    median of its kind in the other wells; an after-breakthrough segment that no well can
+    estimate takes :data:`AFTER_BREAKTHROUGH_DEFAULT` (and never less than the well's own
+    level before breakthrough); a shut-in BHP segment with no estimate the flowing level.
     """
     rho: dict[str, float] = {}
     report: dict = {}
@@ -304,7 +310,8 @@ def _fill_sigma(df: pd.DataFrame, resid: np.ndarray | None = None
             continue
         rel = q in ("WGOR", "WWPR", "WGPR")
         series, keys = [], []
-        for kind, idx in segs:
+        for kind, idx_all in segs:
+            idx = idx_all[(df.loc[idx_all, "period"] == "fit").to_numpy()]
             obs = df.loc[idx, "observed"].to_numpy(float)
             if resid is not None:
                 r = resid[np.asarray(idx, int)]
@@ -321,27 +328,39 @@ def _fill_sigma(df: pd.DataFrame, resid: np.ndarray | None = None
                 else:
                     v = obs / sig
             series.append(v)
-            keys.append((kind, idx))
+            keys.append((kind, idx_all))
         sig, r = estimate_noise(series)
         rho[q] = min(max(r, 0.0), MAX_RHO)
         entry: dict = {"rho": rho[q], "sigma_given": bool(given), "estimated_from": source_of}
         if not given:
             floor = {"WBHP": SIGMA_FLOOR["WBHP"], "WWCT": SIGMA_FLOOR["WWCT"]}.get(
                 q, SIGMA_FLOOR["WGOR_REL"] if q == "WGOR" else SIGMA_FLOOR["RATE_REL"])
-            fallback = {}
+            fallback: dict[str, list[float]] = {}
             for (kind, idx), s in zip(keys, sig):
                 if math.isfinite(s):
                     fallback.setdefault(kind, []).append(s)
             levels = []
+            own_before: dict[str, float] = {}
             for (kind, idx), s in zip(keys, sig):
                 if not len(idx):
                     continue
+                well = df.loc[idx[0], "well"]
                 source = "estimated"
-                if not math.isfinite(s):  # too short: the median of its kind, else of all
-                    pool = fallback.get(kind) or [x for v in fallback.values() for x in v]
-                    if q == "WBHP" and kind == "shut_in" and fallback.get("flowing"):
-                        pool = fallback["flowing"]  # conservative: shut-in as noisy as flowing
-                    s = float(np.median(pool)) if pool else floor
+                if not math.isfinite(s):  # too short to estimate
+                    source = "pooled"
+                    if fallback.get(kind):
+                        s = float(np.median(fallback[kind]))
+                    elif kind == "after" and q in AFTER_BREAKTHROUGH_DEFAULT:
+                        s, source = AFTER_BREAKTHROUGH_DEFAULT[q], "default"
+                    elif kind == "shut_in" and fallback.get("flowing"):
+                        s = float(np.median(fallback["flowing"]))
+                    else:
+                        pool = [x for v in fallback.values() for x in v]
+                        s = float(np.median(pool)) if pool else floor
+                if kind == "before":
+                    own_before[well] = s
+                elif kind == "after" and well in own_before and s < own_before[well]:
+                    s = own_before[well]
                 if s < floor:
                     s, source = floor, "floor"
                 if rel:

@@ -1,0 +1,233 @@
+"""Deploy hmflow's campaign flow on a schedule, and its report-only flow, to a process work pool.
+
+Both deployments load their flow from this repository checkout (``flow.from_source`` with a
+local directory: the deployment's pull step is ``set_working_directory: <repo root>``), so no
+Docker image and no remote code storage are needed; a ``prefect worker start --pool POOL`` on a
+machine with this checkout and its virtualenv runs them, each flow run in a subprocess of the
+worker. The artifact store path in the parameters is made absolute here, so the worker's working
+directory does not matter.
+
+Python::
+
+    from deployments.campaign import campaign_parameters, deploy_campaign, deploy_report, ensure_work_pool
+
+    ensure_work_pool("hmflow-process")
+    params = campaign_parameters(case="synthetic", agent="sac", budget=200, storage="/data/hm")
+    deploy_campaign("nightly", cron="0 2 * * *", timezone="UTC", parameters=params)
+    deploy_report("nightly", storage=params["storage"], campaign=params["campaign"])
+
+Command line (creates the pool if missing, then deploys both)::
+
+    python -m deployments.campaign --case synthetic --budget 200 --storage /data/hm
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tomllib
+from pathlib import Path
+from typing import Any
+from uuid import UUID
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+CAMPAIGN_ENTRYPOINT = "flows/campaign.py:campaign_flow"
+REPORT_ENTRYPOINT = "flows/report.py:report_flow"
+CAMPAIGN_FLOW_NAME = "hmflow-campaign"
+REPORT_FLOW_NAME = "hmflow-report"
+DEFAULT_POOL = "hmflow-process"
+DEFAULT_NAME = "nightly"
+DEFAULT_CRON = "0 2 * * *"
+DEFAULT_STORAGE = "./hmflow-storage"
+BUILTIN_CASES = ("synthetic",)
+
+
+def ensure_work_pool(name: str = DEFAULT_POOL):
+    """Return the work pool ``name``, creating it as a ``process`` pool (with the process
+    worker's default job template) when it does not exist. An existing pool of another type is
+    refused, since the deployments here need a worker that runs flows in local processes."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.actions import WorkPoolCreate
+    from prefect.exceptions import ObjectAlreadyExists, ObjectNotFound
+    from prefect.workers.process import ProcessWorker
+
+    with get_client(sync_client=True) as client:
+        try:
+            pool = client.read_work_pool(name)
+        except ObjectNotFound:
+            try:
+                pool = client.create_work_pool(WorkPoolCreate(
+                    name=name, type=ProcessWorker.type,
+                    base_job_template=ProcessWorker.get_default_base_job_template(),
+                    description="hmflow: campaign and report flows in local subprocesses"))
+            except ObjectAlreadyExists:  # created concurrently
+                pool = client.read_work_pool(name)
+    if pool.type != ProcessWorker.type:
+        raise ValueError(f"work pool {name!r} exists with type {pool.type!r}; hmflow deploys to a "
+                         f"'process' pool: choose another --pool name")
+    return pool
+
+
+def case_name(case: str) -> str:
+    """The ``[case] name`` of a case TOML (cheap: no deck or history is read), or the name of a
+    built-in case."""
+    if case in BUILTIN_CASES:
+        return case
+    path = Path(case)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError as exc:
+        raise ValueError(f"case file {path} not found; give a TOML path or one of the built-in "
+                         f"cases {BUILTIN_CASES}") from exc
+    name = (data.get("case") or {}).get("name")
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{path}: [case] name is missing")
+    return name
+
+
+def campaign_parameters(case: str = "synthetic", agent: str = "sac", budget: int = 200,
+                        workers: int = 2, seed: int = 0, storage: str | Path = DEFAULT_STORAGE,
+                        campaign: str | None = None,
+                        agent_settings: dict | None = None) -> dict[str, Any]:
+    """Parameters of ``campaign_flow`` for a deployment: case file and storage made absolute
+    (the worker runs the flow in another working directory) and the campaign name fixed, so
+    that every scheduled run resumes the same campaign and the report deployment can name it."""
+    from flows.campaign import default_campaign_name
+
+    case = str(case)
+    if case not in BUILTIN_CASES:
+        case = str(Path(case).expanduser().resolve())
+    params: dict[str, Any] = {
+        "case": case, "agent": agent, "budget": int(budget), "workers": int(workers),
+        "seed": int(seed), "storage": str(Path(storage).expanduser().resolve()),
+        "campaign": campaign or default_campaign_name(case_name(case), agent, int(seed))}
+    if agent_settings:
+        params["agent_settings"] = dict(agent_settings)
+    return params
+
+
+def _absolute_paths(parameters: dict[str, Any]) -> dict[str, Any]:
+    """``storage`` and a case file path made absolute (the worker has another working dir)."""
+    parameters = dict(parameters)
+    parameters["storage"] = str(Path(parameters.get("storage") or DEFAULT_STORAGE)
+                                .expanduser().resolve())
+    case = parameters.get("case")
+    if case is not None and str(case) not in BUILTIN_CASES:
+        parameters["case"] = str(Path(case).expanduser().resolve())
+    return parameters
+
+
+def _apply(deployment, work_pool: str) -> UUID:
+    """Register ``deployment`` (a RunnerDeployment from ``flow.to_deployment``) on ``work_pool``.
+
+    This is what ``Flow.deploy`` does for a flow from local source, minus its console output and
+    its listing of the pool's online workers: with the fastapi (0.154) installed beside
+    prefect 3.8.8 that listing is refused by the server (HTTP 422, the client sends
+    ``"limit": null``), which makes ``Flow.deploy`` fail before anything is deployed."""
+    ensure_work_pool(work_pool)
+    return deployment.apply(work_pool_name=work_pool)
+
+
+def deploy_campaign(name: str = DEFAULT_NAME, cron: str | None = DEFAULT_CRON,
+                    timezone: str = "UTC", parameters: dict[str, Any] | None = None,
+                    work_pool: str = DEFAULT_POOL, paused: bool = False,
+                    concurrency_limit: int | None = 1,
+                    tags: list[str] | None = None) -> UUID:
+    """Deploy ``flows/campaign.py:campaign_flow`` from this checkout as
+    ``hmflow-campaign/<name>`` on ``work_pool``, run on ``cron`` in ``timezone`` (no schedule
+    when ``cron`` is None); return the deployment id. Redeploying the same name updates it.
+
+    ``parameters`` are the flow's parameters (see :func:`campaign_parameters`); ``storage`` and
+    a case file path are made absolute. ``concurrency_limit`` (default 1) is the deployment's
+    Prefect concurrency limit, so that two runs do not work on the same campaign at once."""
+    from prefect import Flow
+    from prefect.schedules import Cron
+
+    params = _absolute_paths(parameters or campaign_parameters())
+    flow = Flow.from_source(source=str(REPO_ROOT), entrypoint=CAMPAIGN_ENTRYPOINT)
+    schedules = [Cron(cron, timezone=timezone)] if cron else None
+    deployment = flow.to_deployment(
+        name=name, work_pool_name=work_pool, schedules=schedules, parameters=params,
+        paused=paused, concurrency_limit=concurrency_limit, tags=tags or ["hmflow"],
+        description=(f"hmflow campaign {params.get('campaign')}: case {params.get('case')}, agent "
+                     f"{params.get('agent')}, budget {params.get('budget')}, storage "
+                     f"{params['storage']}. A rerun with the same parameters resumes the campaign "
+                     f"(journaled simulator calls are not repeated)."))
+    return _apply(deployment, work_pool)
+
+
+def deploy_report(name: str = DEFAULT_NAME, storage: str | Path = DEFAULT_STORAGE,
+                  campaign: str | None = None, work_pool: str = DEFAULT_POOL,
+                  tags: list[str] | None = None) -> UUID:
+    """Deploy ``flows/report.py:report_flow`` (no schedule) as ``hmflow-report/<name>``: it
+    rebuilds a campaign's report from stored artifacts, with zero simulator calls. ``storage``
+    and ``campaign`` are its default parameters (changeable per run from the UI/CLI)."""
+    from prefect import Flow
+
+    params: dict[str, Any] = {"storage": str(Path(storage).expanduser().resolve())}
+    if campaign:
+        params["campaign"] = campaign
+    flow = Flow.from_source(source=str(REPO_ROOT), entrypoint=REPORT_ENTRYPOINT)
+    deployment = flow.to_deployment(
+        name=name, work_pool_name=work_pool, parameters=params, tags=tags or ["hmflow"],
+        description="Rebuild an hmflow campaign's report (Markdown + tables, also published as "
+                    "Prefect artifacts) from the artifact store; runs no simulation.")
+    return _apply(deployment, work_pool)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m deployments.campaign",
+        description="Create the process work pool if missing, deploy the scheduled campaign "
+                    "(hmflow-campaign/NAME) and the report-only flow (hmflow-report/NAME). "
+                    "Uses the Prefect API of the current profile (PREFECT_API_URL).")
+    p.add_argument("--name", default=DEFAULT_NAME, help="deployment name (default %(default)s)")
+    p.add_argument("--pool", default=DEFAULT_POOL, help="process work pool (default %(default)s)")
+    p.add_argument("--cron", default=DEFAULT_CRON, help="cron schedule (default '%(default)s')")
+    p.add_argument("--timezone", default="UTC", help="IANA timezone of the cron (default %(default)s)")
+    p.add_argument("--no-schedule", action="store_true", help="deploy without a schedule")
+    p.add_argument("--case", default="synthetic", help="case TOML or 'synthetic' (default %(default)s)")
+    p.add_argument("--agent", default="sac", choices=["sac", "random"])
+    p.add_argument("--budget", type=int, default=200, help="simulator calls (default %(default)s)")
+    p.add_argument("--workers", type=int, default=2, help="simulations at once (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--storage", default=DEFAULT_STORAGE,
+                   help="artifact store; made absolute (default %(default)s)")
+    p.add_argument("--campaign", default=None, help="campaign name (default CASE-AGENT-seedS)")
+    p.add_argument("--no-report", action="store_true", help="skip the report-only deployment")
+    args = p.parse_args(argv)
+
+    from prefect.settings import PREFECT_API_URL
+
+    if not PREFECT_API_URL.value():
+        print("error: no Prefect server configured (PREFECT_API_URL is not set); deployments "
+              "on a temporary server would vanish with it. Start one with `prefect server "
+              "start` and run `prefect config set PREFECT_API_URL=http://127.0.0.1:4200/api`",
+              file=sys.stderr)
+        return 2
+    try:
+        params = campaign_parameters(case=args.case, agent=args.agent, budget=args.budget,
+                                     workers=args.workers, seed=args.seed, storage=args.storage,
+                                     campaign=args.campaign)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    pool = ensure_work_pool(args.pool)
+    print(f"work pool {pool.name!r} (type {pool.type})")
+    cron = None if args.no_schedule else args.cron
+    dep_id = deploy_campaign(args.name, cron=cron, timezone=args.timezone, parameters=params,
+                             work_pool=args.pool)
+    when = f"cron '{cron}' ({args.timezone})" if cron else "no schedule"
+    print(f"deployment '{CAMPAIGN_FLOW_NAME}/{args.name}' {dep_id}: {when}, parameters {params}")
+    if not args.no_report:
+        rep_id = deploy_report(args.name, storage=params["storage"], campaign=params["campaign"],
+                               work_pool=args.pool)
+        print(f"deployment '{REPORT_FLOW_NAME}/{args.name}' {rep_id}: no schedule, parameters "
+              f"storage={params['storage']}, campaign={params['campaign']}")
+    print(f"next: prefect worker start --pool {args.pool}\n"
+          f"      prefect deployment run '{CAMPAIGN_FLOW_NAME}/{args.name}'")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

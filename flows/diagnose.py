@@ -1,0 +1,183 @@
+"""The diagnose flow: calibrate -> analyse residuals -> rank causes -> extend -> recalibrate ->
+report. Simulations are Prefect tasks submitted together (``workers`` at a time); every step's
+artifacts are stored as versioned artifacts of the campaign (steps ``diagnosis-calibration``,
+``diagnosis-residuals``, ``diagnosis-ranking``, ``diagnosis-extension``,
+``diagnosis-recalibration``, ``diagnosis-report``; the report holds ``diagnosis.json``).
+
+``diagnose_command`` is the ``hmflow diagnose`` command (register it on the CLI's Typer app).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any, Optional
+
+from prefect import flow, get_run_logger
+
+from hmcore.diagnosis import Diagnosis, DiagnosisSettings
+from storage import sha256_json
+from tasks.case import prepare_deck, validate_case
+from tasks.diagnose import simulate_values, store_step
+
+DEFAULT_STORAGE = "./hmflow-storage"
+STEPS = ("diagnosis-calibration", "diagnosis-residuals", "diagnosis-ranking",
+         "diagnosis-extension", "diagnosis-recalibration", "diagnosis-report")
+
+
+def default_campaign_name(case_name: str) -> str:
+    return f"{case_name}-diagnosis"
+
+
+def _content_hash(files: dict[str, Any]) -> str:
+    """A hash of a step's files, so that new content is always a new version."""
+    h = hashlib.sha256()
+    for name in sorted(files):
+        v = files[name]
+        if isinstance(v, bytes):
+            h.update(v)
+        elif isinstance(v, str):
+            h.update(v.encode())
+        elif isinstance(v, dict):
+            h.update(sha256_json(v).encode())
+        else:  # DataFrame
+            import pandas as pd
+
+            h.update(pd.util.hash_pandas_object(v, index=True).values.tobytes())
+        h.update(name.encode())
+    return h.hexdigest()
+
+
+def _safe(name: str) -> str:
+    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
+
+
+@flow(name="hmflow-diagnose", log_prints=True)
+def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
+                  budget: int | None = None, campaign: str | None = None, workers: int = 2,
+                  calibrated: dict[str, float] | None = None,
+                  initial: dict[str, float] | None = None,
+                  settings: dict[str, Any] | None = None) -> dict:
+    """Diagnose ``case``: what does the calibrated model get wrong, and what fixes it?
+
+    ``budget`` caps the simulator calls (None: as many as the steps need, about
+    40 + the number of candidate extensions); ``calibrated`` skips the calibration of the
+    case's own parameters (e.g. a campaign's best), ``initial`` starts it elsewhere than at
+    the base model; ``settings`` overrides :class:`DiagnosisSettings` fields (thresholds,
+    kinds, confirm_top). Returns the campaign, the ranked causes, the selected extension,
+    the gain and ``diagnosis_path`` (the stored ``diagnosis.json``).
+    """
+    import pandas as pd
+
+    logger = get_run_logger()
+    storage = str(Path(storage).resolve())
+    loaded = validate_case(case)
+    campaign = campaign or default_campaign_name(loaded.name)
+    case_version = prepare_deck(loaded, case, storage, campaign)
+    run_root = Path(storage) / campaign / "diagnosis-runs"
+    counter = itertools.count()
+    lock = threading.Lock()
+
+    def evaluate_batch(c, values_list, step):
+        with lock:
+            dirs = [str(run_root / f"{step}-{next(counter):05d}") for _ in values_list]
+        futures = [simulate_values.submit(c, v, d) for v, d in zip(values_list, dirs)]
+        return [f.result() for f in futures]
+
+    opts = dict(settings or {})
+    if "kinds" in opts:
+        opts["kinds"] = tuple(opts["kinds"])
+    d = Diagnosis(loaded, evaluate_batch, DiagnosisSettings(budget=budget, **opts),
+                  log=logger.info)
+    previous: dict[str, Any] = {"case": case_version.ref()}
+    versions = {}
+
+    def store(step: str, files: dict[str, Any]):
+        inputs = {**previous, "settings": d.settings.to_dict(), "content": _content_hash(files)}
+        v = store_step(storage, campaign, step, inputs, files)
+        previous.clear()
+        previous.update({"case": case_version.ref(), "previous": v.ref()})
+        versions[step] = v
+        return v
+
+    d.calibrate(calibrated, initial)
+    store("diagnosis-calibration", {"calibration.json": d.calibration,
+                                    "responses.parquet": d.base.responses.reset_index(drop=True)})
+    d.analyse()
+    store("diagnosis-residuals", {"residuals.json": d.residuals,
+                                  "observations.parquet": d.obs.rows})
+    d.rank()
+    sens = pd.DataFrame({k: v for k, v in d.sensitivity.items()})
+    store("diagnosis-ranking", {"ranking.json": d.ranking, "sensitivities.parquet": sens})
+    d.extend()
+    store("diagnosis-extension", {"extension.json": d.extension})
+    d.recalibrate()
+    files = {"recalibration.json": d.recalibration}
+    for cid, run in d.confirmed_runs.items():
+        if run.responses is not None:
+            files[f"responses_{_safe(cid)}.parquet"] = run.responses.reset_index(drop=True)
+    store("diagnosis-recalibration", files)
+    doc = d.decide()
+    with tempfile.TemporaryDirectory(prefix="hmflow-diagnosis-") as tmp:
+        d.report(Path(tmp))
+        report_files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())}
+    rep = store("diagnosis-report", report_files)
+    path = rep.file("diagnosis.json")
+    sel = doc["selected"]
+    logger.info(f"diagnosis of {loaded.name}: {doc['verdict']}")
+    return {"campaign": campaign, "storage": storage, "causes": doc["causes"],
+            "selected": sel, "verdict": doc["verdict"], "gain": doc["gain"],
+            "diagnosis_path": str(path), "report_path": str(rep.file("report.md")),
+            "artifacts": {k: v.ref() for k, v in versions.items()},
+            "simulations": d.n_runs}
+
+
+# ============================================================================ CLI
+def print_diagnosis(result: dict, console=None, most: int = 8) -> None:
+    """Print the ranked causes, the selected extension, the gain and the report's path."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = console or Console()
+
+    def num(v, digits=5):
+        return "n/a" if v is None else f"{v:.{digits}g}"
+
+    t = Table(title="Ranked causes (best first; 'none' marks the noise level)")
+    for col in ("rank", "kind", "wells", "layers", "score", "chi2", "evidence"):
+        t.add_column(col, justify="right" if col in ("rank", "score", "chi2") else "left")
+    for n, c in enumerate(result["causes"][:most], 1):
+        t.add_row(str(n), c["kind"], ", ".join(c["wells"]) or "-",
+                  ", ".join(map(str, c["layers"])) or "-", num(c["score"], 3), num(c["chi2"], 4),
+                  c.get("evidence", ""))
+    console.print(t)
+    sel = result["selected"]
+    console.print(f"selected: [bold]{sel['kind']}[/] ({sel['id']}) - {sel['description']}"
+                  if sel else "selected: [bold]none[/]")
+    console.print(result["verdict"], highlight=False)
+    g = result["gain"]
+    gt = Table(title="Gain (misfit E)")
+    for col in ("history", "before", "after"):
+        gt.add_column(col, justify="left" if col == "history" else "right")
+    gt.add_row("fitted", num(g["fit_before"]), num(g["fit_after"]))
+    gt.add_row("held back", num(g["heldout_before"]), num(g["heldout_after"]))
+    console.print(gt)
+    console.print(f"diagnosis: {result['diagnosis_path']}")
+    console.print(f"report:    {result['report_path']}")
+
+
+def diagnose_command(case: str = "synthetic", storage: Path = Path(DEFAULT_STORAGE),
+                     budget: Optional[int] = None, workers: int = 2,
+                     campaign: Optional[str] = None, console=None) -> dict:
+    """``hmflow diagnose``: run the flow with ``workers`` simulations at a time and print the
+    ranked causes, the gain and the path of diagnosis.json. Returns the flow's result."""
+    from prefect.task_runners import ThreadPoolTaskRunner
+
+    flow_fn = diagnose_flow.with_options(task_runner=ThreadPoolTaskRunner(max_workers=workers))
+    result = flow_fn(case=str(case), storage=str(Path(storage).resolve()), budget=budget,
+                     campaign=campaign, workers=workers)
+    print_diagnosis(result, console)
+    return result

@@ -1,0 +1,322 @@
+"""The scheduled campaign deployment for real: a `prefect server start` (SQLite, temporary
+PREFECT_HOME, free loopback port), a process work pool, the deployments of
+``deployments/campaign.py``, a `prefect worker start` subprocess and real OPM Flow runs.
+
+The campaign (PUNQ-S3, random agent, budget 4, 2 at a time) is triggered with
+``run_deployment``; then the report-only deployment is run and must not simulate anything.
+Server, worker and every process they started are stopped in the fixtures' teardown.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
+PUNQ_FILES = ("PUNQS3.DATA", "PUNQS3.GEO", "PUNQS3.PRP", "punqs3_observed_full_history.csv")
+REPO = Path(__file__).resolve().parents[1]
+PREFECT = Path(sys.executable).with_name("prefect")
+POOL = "hmflow-test-process"
+NAME = "it-nightly"
+CAMPAIGN = "punq-deploy-it"
+BUDGET = 4
+RUN_TIMEOUT_S = 240
+
+_missing = [n for n in PUNQ_FILES if not (PUNQ / n).is_file()]
+pytestmark = [
+    pytest.mark.slow, pytest.mark.opm,
+    pytest.mark.skipif(bool(_missing), reason=f"PUNQ-S3 data not found in {PUNQ} (expected "
+                       f"../shared/punqs3 next to the repository; missing {_missing})"),
+    pytest.mark.skipif(not PREFECT.is_file(), reason=f"prefect CLI not found at {PREFECT}"),
+]
+
+
+# --------------------------------------------------------------------------------------------
+# processes
+# --------------------------------------------------------------------------------------------
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _isolated_env(home: Path, api_url: str, **extra: str) -> dict[str, str]:
+    """This environment without any PREFECT_* variable, plus a temporary PREFECT_HOME (its own
+    profiles and database) and our server's API URL."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env.update({"PREFECT_HOME": str(home), "PREFECT_API_URL": api_url,
+                "PREFECT_SERVER_ANALYTICS_ENABLED": "false", **extra})
+    return env
+
+
+def _start(cmd: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
+    out = open(log, "wb")
+    try:
+        return subprocess.Popen(cmd, env=env, cwd=str(log.parent), stdin=subprocess.DEVNULL,
+                                stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    finally:
+        out.close()  # the child keeps its own descriptor
+
+
+def _stop(proc: subprocess.Popen, grace_s: float = 15.0) -> None:
+    """SIGTERM the process and everything it started (by pid, collected first), then SIGKILL
+    whatever is still alive after ``grace_s``."""
+    import psutil
+
+    try:
+        family = [psutil.Process(proc.pid)]
+        family += family[0].children(recursive=True)
+    except psutil.NoSuchProcess:
+        family = []
+    for p in family:
+        try:
+            p.send_signal(signal.SIGTERM)
+        except psutil.NoSuchProcess:
+            pass
+    _, alive = psutil.wait_procs(family, timeout=grace_s)
+    for p in alive:
+        try:
+            p.kill()
+        except psutil.NoSuchProcess:
+            pass
+    psutil.wait_procs(alive, timeout=5)
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:  # pragma: no cover - killed above
+        pass
+
+
+def _tail(path: Path, n: int = 4000) -> str:
+    try:
+        return path.read_text(errors="replace")[-n:]
+    except OSError:
+        return "(no log)"
+
+
+@pytest.fixture(scope="module")
+def prefect_server(tmp_path_factory):
+    """A real `prefect server start` on a free loopback port with a temporary PREFECT_HOME."""
+    root = tmp_path_factory.mktemp("prefect-server")
+    home = root / "home"
+    home.mkdir()
+    port = _free_port()
+    api = f"http://127.0.0.1:{port}/api"
+    env = _isolated_env(home, api)
+    log = root / "server.log"
+    proc = _start([str(PREFECT), "server", "start", "--host", "127.0.0.1", "--port", str(port),
+                   "--no-ui"], env, log)
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            if proc.poll() is not None:
+                pytest.fail(f"prefect server exited with {proc.returncode}:\n{_tail(log)}")
+            try:
+                with urllib.request.urlopen(f"{api}/health", timeout=2) as r:
+                    if r.status == 200 and json.loads(r.read()) is True:
+                        break
+            except OSError:
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail(f"prefect server not healthy after 120 s:\n{_tail(log)}")
+            time.sleep(0.5)
+        yield {"api": api, "home": home, "env": env, "root": root, "log": log}
+    finally:
+        _stop(proc)
+
+
+@pytest.fixture(scope="module")
+def api_settings(prefect_server):
+    """Point this test process's Prefect client at the test server (and the temporary home)."""
+    from prefect.settings import PREFECT_API_URL, PREFECT_HOME, temporary_settings
+
+    with temporary_settings(updates={PREFECT_API_URL: prefect_server["api"],
+                                     PREFECT_HOME: str(prefect_server["home"])}):
+        yield prefect_server
+
+
+@pytest.fixture(scope="module")
+def deployed(api_settings, tmp_path_factory):
+    """The process pool and both deployments (campaign on a cron schedule, report-only)."""
+    from deployments.campaign import (campaign_parameters, deploy_campaign, deploy_report,
+                                      ensure_work_pool)
+
+    tmp = tmp_path_factory.mktemp("deploy")
+    case = tmp / "punqs3.toml"
+    case.write_text(f'[case]\nname = "punqs3"\ndeck = "{PUNQ / "PUNQS3.DATA"}"\n'
+                    f'observed = "{PUNQ / "punqs3_observed_full_history.csv"}"\n'
+                    f"history_end_days = 2936\n")
+    storage = tmp / "store"
+    # a daily cron 12 h away from now: never due while this test runs
+    cron = f"0 {(dt.datetime.now(dt.timezone.utc).hour + 12) % 24} * * *"
+    pool = ensure_work_pool(POOL)
+    assert ensure_work_pool(POOL).id == pool.id  # idempotent
+    params = campaign_parameters(case=str(case), agent="random", budget=BUDGET, workers=2,
+                                 seed=0, storage=storage, campaign=CAMPAIGN)
+    assert params["storage"] == str(storage.resolve()) and Path(params["storage"]).is_absolute()
+    campaign_id = deploy_campaign(NAME, cron=cron, timezone="UTC", parameters=params,
+                                  work_pool=POOL)
+    report_id = deploy_report(NAME, storage=storage, campaign=CAMPAIGN, work_pool=POOL)
+    return {"pool": pool, "cron": cron, "params": params, "storage": storage.resolve(),
+            "campaign_id": campaign_id, "report_id": report_id}
+
+
+@pytest.fixture(scope="module")
+def worker(prefect_server, deployed):
+    """A real `prefect worker start --pool POOL` subprocess (polling every 2 s)."""
+    log = prefect_server["root"] / "worker.log"
+    env = dict(prefect_server["env"], PREFECT_WORKER_QUERY_SECONDS="2")
+    proc = _start([str(PREFECT), "worker", "start", "--pool", POOL, "--name", "hmflow-it-worker",
+                   "--limit", "1"], env, log)
+    try:
+        yield {"proc": proc, "log": log}
+    finally:
+        _stop(proc)  # before the server fixture stops the server: a worker without its server
+        #              keeps retrying instead of exiting
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------
+def _run(deployment: str, worker: dict, timeout: int = RUN_TIMEOUT_S):
+    from prefect.deployments import run_deployment
+
+    assert worker["proc"].poll() is None, f"worker exited:\n{_tail(worker['log'])}"
+    t0 = time.monotonic()
+    flow_run = run_deployment(deployment, timeout=timeout, poll_interval=2)
+    elapsed = time.monotonic() - t0
+    assert flow_run.state is not None and flow_run.state.is_completed(), (
+        f"{deployment}: flow run {flow_run.id} is {flow_run.state} after {elapsed:.0f} s "
+        f"(limit {timeout} s)\nworker log:\n{_tail(worker['log'])}")
+    return flow_run
+
+
+def _artifacts_of(flow_run_id) -> list:
+    """Artifacts of a flow run. Every filter, sort, limit and offset is given: with fastapi 0.154
+    the server refuses the nulls that ``read_artifacts()`` sends for the ones left out (422)."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import (ArtifactFilter, FlowRunFilter, FlowRunFilterId,
+                                                TaskRunFilter)
+    from prefect.client.schemas.sorting import ArtifactSort
+
+    with get_client(sync_client=True) as client:
+        return client.read_artifacts(
+            artifact_filter=ArtifactFilter(),
+            flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])),
+            task_run_filter=TaskRunFilter(), sort=ArtifactSort.KEY_ASC, limit=50, offset=0)
+
+
+def _journal(storage: Path) -> list[dict]:
+    return [json.loads(p.read_text())
+            for p in sorted((storage / CAMPAIGN / "evaluations").glob("*.json"))]
+
+
+def _run_dirs(storage: Path) -> list[str]:
+    runs = storage / CAMPAIGN / "runs"
+    return sorted(p.name for p in runs.iterdir()) if runs.is_dir() else []
+
+
+# --------------------------------------------------------------------------------------------
+# tests
+# --------------------------------------------------------------------------------------------
+@pytest.mark.timeout(600)
+def test_scheduled_campaign_deployment_runs_on_a_process_worker(deployed, worker):
+    from prefect.client.orchestration import get_client
+
+    from storage import ArtifactStore
+
+    # the deployments as registered
+    with get_client(sync_client=True) as client:
+        dep = client.read_deployment(deployed["campaign_id"])
+        rep = client.read_deployment(deployed["report_id"])
+        pool = client.read_work_pool(POOL)
+    assert pool.type == "process"
+    assert dep.name == NAME and dep.work_pool_name == POOL
+    assert len(dep.schedules) == 1 and dep.schedules[0].active
+    assert dep.schedules[0].schedule.cron == deployed["cron"]
+    assert dep.schedules[0].schedule.timezone == "UTC"
+    assert dep.parameters == deployed["params"]
+    assert dep.pull_steps == [{"prefect.deployments.steps.set_working_directory":
+                               {"directory": str(REPO)}}]
+    assert rep.work_pool_name == POOL and not rep.schedules
+    assert rep.parameters == {"storage": str(deployed["storage"]), "campaign": CAMPAIGN}
+
+    # the campaign, triggered now, run by the worker
+    flow_run = _run(f"hmflow-campaign/{NAME}", worker)
+    storage = deployed["storage"]
+    store = ArtifactStore(storage)
+    rows = _journal(storage)
+    assert [r["index"] for r in rows] == list(range(BUDGET))
+    for step in ("case", "results", "best", "report"):
+        assert store.latest(CAMPAIGN, step) is not None, f"no {step} version in {storage}"
+    table = store.latest(CAMPAIGN, "results").read_parquet("evaluations.parquet")
+    assert len(table) == BUDGET
+    assert store.latest(CAMPAIGN, "report").file("report.md").read_text().strip()
+    assert len(_run_dirs(storage)) == BUDGET
+
+    keys = {a.key for a in _artifacts_of(flow_run.id)}
+    assert {f"{CAMPAIGN}-report", f"{CAMPAIGN}-categories", f"{CAMPAIGN}-wells"} <= keys, keys
+    types = {a.key: a.type for a in _artifacts_of(flow_run.id)}
+    assert types[f"{CAMPAIGN}-report"] == "markdown" and types[f"{CAMPAIGN}-wells"] == "table"
+
+    # the report-only deployment: a new report from stored artifacts, no simulator call
+    journal_before = [(r["index"], r["run_dir"]) for r in rows]
+    runs_before = _run_dirs(storage)
+    report_run = _run(f"hmflow-report/{NAME}", worker, timeout=120)
+    assert [(r["index"], r["run_dir"]) for r in _journal(storage)] == journal_before
+    assert _run_dirs(storage) == runs_before
+    assert store.latest(CAMPAIGN, "report").read_json("report.json")["calls"] == BUDGET
+    keys = {a.key for a in _artifacts_of(report_run.id)}
+    assert {f"{CAMPAIGN}-report", f"{CAMPAIGN}-categories", f"{CAMPAIGN}-wells"} <= keys, keys
+    assert "Traceback" not in _tail(worker["log"], 100_000)
+
+
+@pytest.mark.timeout(120)
+def test_cli_creates_pool_and_both_deployments(prefect_server, tmp_path):
+    """`python -m deployments.campaign` against the same server (no flow is run here)."""
+    from prefect.client.orchestration import get_client
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    pool = "hmflow-cli-pool"
+    proc = subprocess.run(
+        [sys.executable, "-m", "deployments.campaign", "--pool", pool, "--name", "cli-check",
+         "--cron", "30 3 * * 1", "--timezone", "Europe/Oslo", "--agent", "random",
+         "--budget", "3", "--storage", "rel-store", "--campaign", "cli-campaign"],
+        cwd=tmp_path, env=prefect_server["env"], capture_output=True, text=True, timeout=100)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "hmflow-campaign/cli-check" in proc.stdout and "hmflow-report/cli-check" in proc.stdout
+    with temporary_settings(updates={PREFECT_API_URL: prefect_server["api"]}):
+        with get_client(sync_client=True) as client:
+            assert client.read_work_pool(pool).type == "process"
+            dep = client.read_deployment_by_name("hmflow-campaign/cli-check")
+            rep = client.read_deployment_by_name("hmflow-report/cli-check")
+    assert dep.schedules[0].schedule.cron == "30 3 * * 1"
+    assert dep.schedules[0].schedule.timezone == "Europe/Oslo"
+    assert dep.parameters["storage"] == str((tmp_path / "rel-store").resolve())
+    assert dep.parameters["case"] == "synthetic" and dep.parameters["budget"] == 3
+    assert rep.parameters == {"storage": str((tmp_path / "rel-store").resolve()),
+                              "campaign": "cli-campaign"}
+
+
+def test_cli_refuses_a_missing_case_file(prefect_server, tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "deployments.campaign", "--case",
+                           str(tmp_path / "nope.toml")], cwd=tmp_path, env=prefect_server["env"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "not found" in proc.stderr
+
+
+def test_cli_refuses_to_deploy_without_a_configured_server(prefect_server, tmp_path):
+    env = {k: v for k, v in prefect_server["env"].items() if k != "PREFECT_API_URL"}
+    env["PREFECT_HOME"] = str(tmp_path / "home")  # a profile without PREFECT_API_URL
+    proc = subprocess.run([sys.executable, "-m", "deployments.campaign"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "PREFECT_API_URL" in proc.stderr, proc.stderr

@@ -1,0 +1,438 @@
+"""Unit tests of the diagnosis (fast, no simulator): noise estimation, whitened residuals,
+residual statistics, the score test on linear data, the bounded LM, the extension library on
+PUNQ-S3's and the synthetic deck, and the whole orchestration on a linear stand-in simulator."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from hmcore.diagnosis.attribution import projector_basis, score_test
+from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings,
+                                          run_lockstep)
+from hmcore.diagnosis.residuals import (ObservationSet, analyse_residuals, estimate_noise,
+                                        robust_variogram)
+from hmcore.parameters import Parameter, ParameterSpace
+
+PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
+needs_punq = pytest.mark.skipif(not (PUNQ / "PUNQS3.DATA").is_file(),
+                                reason=f"PUNQ-S3 data not found at {PUNQ}")
+
+
+def ar1(rng, n, rho):
+    z = np.empty(n)
+    z[0] = rng.standard_normal()
+    for t in range(1, n):
+        z[t] = rho * z[t - 1] + math.sqrt(1 - rho * rho) * rng.standard_normal()
+    return z
+
+
+# ============================================================================ noise
+@pytest.mark.parametrize("rho", [0.0, 0.5, 0.7])
+def test_noise_level_and_correlation_are_recovered_from_noisy_series(rho):
+    rng = np.random.default_rng(3)
+    sig = [2.0, 3.0, 5.0] * 4
+    series = []
+    for s in sig:
+        t = np.linspace(0, 1, 90)
+        trend = 20 * t + 5 * np.sin(3 * t)  # a smooth signal: not noise
+        series.append(trend + s * ar1(rng, t.size, rho))
+    est, r = estimate_noise(series)
+    assert abs(r - rho) < 0.15
+    for s, e in zip(sig, est):
+        assert 0.7 * s < e < 1.35 * s
+
+
+def test_variogram_ignores_linear_trends_and_single_jumps():
+    x = np.arange(50, dtype=float) * 10.0
+    x[25:] += 500.0
+    g = robust_variogram(x, 2)
+    assert np.allclose(g, 0.0)
+    assert np.isnan(robust_variogram(np.ones(3), 2)).all()
+
+
+def _observed(rng, wells=("W1", "W2"), n=60, bias=None, rho=0.7, sigma=True):
+    """Observed BHP/WCT/GOR/WOPR rows with AR(1) noise around a known truth."""
+    rows, truth = [], []
+    days = np.arange(1, n + 1) * 30.0
+    for w in wells:
+        bhp = 200 - 0.02 * days
+        wct = np.clip((days - 900) / 1500, 0, 0.8)
+        gor = 100 + 0.03 * days
+        for q, v, s in (("WBHP", bhp, 3.0), ("WWCT", wct, 0.02), ("WGOR", gor, 0.1 * gor),
+                        ("WOPR", np.full(n, 100.0), np.nan)):
+            noise = 0.0 if q == "WOPR" else s * ar1(rng, n, rho)
+            rows.append(pd.DataFrame({"well": w, "days": days, "quantity": q,
+                                      "value": v + noise, "sigma": s if sigma else np.nan,
+                                      "flowing": True, "derived": False}))
+            tv = v + (bias if (bias and q == "WBHP" and w == wells[0]) else 0.0)
+            truth.append(pd.DataFrame({"well": w, "days": days, "quantity": q, "value": tv}))
+    return pd.concat(rows, ignore_index=True), pd.concat(truth, ignore_index=True)
+
+
+def test_whitened_residuals_of_pure_noise_are_unit_white():
+    rng = np.random.default_rng(0)
+    obs, sim = _observed(rng, wells=[f"W{i}" for i in range(8)], n=120)
+    o = ObservationSet.from_observed(obs, 2500.0).refine(sim, obs)
+    assert abs(o.rho["WBHP"] - 0.7) < 0.15
+    r = o.residual_vector(sim, "fit")
+    assert r.size == o.n_fit
+    q = o.rows.quantity.to_numpy()[o.vector_index("fit")]
+    assert np.all(r[q == "WOPR"] == 0)  # the rate control is matched exactly
+    assert 0.75 < float(np.mean(r[q != "WOPR"] ** 2)) < 1.25
+    e = r[q == "WBHP"]
+    assert abs(np.corrcoef(e[1:], e[:-1])[0, 1]) < 0.15  # the AR(1) correlation is gone
+
+
+def test_sigma_is_estimated_from_residuals_when_not_given():
+    rng = np.random.default_rng(1)
+    obs, sim = _observed(rng, wells=[f"W{i}" for i in range(6)], n=100, sigma=False)
+    o = ObservationSet.from_observed(obs, 2500.0).refine(sim, obs)
+    bhp = o.rows[o.rows.quantity == "WBHP"]
+    assert set(bhp.sigma_source) == {"estimated"}
+    assert 2.0 < bhp.sigma.median() < 4.2  # true 3 bar
+    gor = o.rows[o.rows.quantity == "WGOR"]
+    assert 0.06 < float((gor.sigma / gor.observed).median()) < 0.15  # true 10 %
+    oil = o.rows[o.rows.quantity == "WOPR"]
+    assert set(oil.sigma_source) == {"rate"} and np.allclose(oil.sigma, 5.0)
+
+
+def test_residual_analysis_flags_a_bias_beyond_noise_and_not_noise():
+    rng = np.random.default_rng(2)
+    obs, sim = _observed(rng, n=80, bias=6.0)
+    o = ObservationSet.from_observed(obs, 1800.0).refine(sim, obs)
+    res = analyse_residuals(o, sim)
+    json.dumps(res)  # serialisable
+    w1 = res["wells"]["W1"]["bhp"]
+    assert w1["fit"]["beyond_noise"] and w1["fit"]["z_bias"] > 3
+    assert w1["fit"]["bias"] == pytest.approx(6.0, abs=2.0)
+    assert set(w1) >= {"fit", "early", "late", "heldout", "flowing"}
+    assert not res["wells"]["W2"]["bhp"]["fit"]["beyond_noise"]
+    assert any(f["well"] == "W1" and f["response"] == "bhp" for f in res["flags"])
+    assert res["summary"]["n_fit"] == o.n_fit
+
+
+def test_breakthrough_timing_error_is_measured():
+    rng = np.random.default_rng(4)
+    obs, sim = _observed(rng, n=80)
+    late = sim.copy()
+    m = late.quantity == "WWCT"
+    late.loc[m, "value"] = np.clip((late.loc[m, "days"] - 1200) / 1500, 0, 0.8)
+    o = ObservationSet.from_observed(obs, 2400.0)
+    bt = analyse_residuals(o, late)["breakthrough"]["W1"]["water"]
+    assert bt["error_days"] == pytest.approx(300, abs=90) and bt["beyond_noise"]
+
+
+# ============================================================================ score test
+def test_score_test_finds_the_direction_that_made_the_residual():
+    rng = np.random.default_rng(5)
+    n = 400
+    g = rng.standard_normal((n, 3))  # global parameters' sensitivities
+    j_true = rng.standard_normal(n)
+    j_other = rng.standard_normal(n)
+    g_part = g @ np.array([1.0, -0.5, 0.2])
+    j_mimic = g_part + 0.05 * rng.standard_normal(n)
+    r = 0.4 * j_true + rng.standard_normal(n)
+    Q = projector_basis(g)
+    s_true = score_test(r, j_true, Q)
+    s_other = score_test(r, j_other, Q)
+    # a misfit the globals can fix is no evidence for a candidate that resembles them
+    s_mimic = score_test(r + 3 * g_part, j_mimic, Q)
+    assert score_test(r + 3 * g_part, j_mimic).chi2 > 100  # it would score without the refit
+    assert s_true.chi2 > 30 and s_true.score > 0.1
+    assert s_other.chi2 < 10 and s_mimic.chi2 < 10
+    assert s_true.step_u == pytest.approx(-0.4, abs=0.1)
+    # exact linear algebra: score = (j.r)^2 / (j.j r.r)
+    s = score_test(r, j_true)
+    assert s.score == pytest.approx((j_true @ r) ** 2 / ((j_true @ j_true) * (r @ r)))
+    # a step outside the bounds is cut there, and a forbidden direction scores zero
+    assert score_test(r, j_true, None, (-0.1, 1.0)).step_u == pytest.approx(-0.1)
+    assert score_test(r, j_true, None, (0.0, 1.0)).chi2 == 0.0
+
+
+def test_pure_noise_scores_like_chi_square_one():
+    rng = np.random.default_rng(6)
+    chi = [score_test(rng.standard_normal(300), rng.standard_normal(300)).chi2
+           for _ in range(2000)]
+    assert 0.9 < np.mean(chi) < 1.1
+    assert np.quantile(chi, 0.999) < 15
+
+
+# ============================================================================ LM
+def test_coordinates_round_trip_and_log_scale():
+    params = [Parameter(name="k", kind="multiply", keywords=("PERMX",), low=0.1, high=10.0),
+              Parameter(name="s", kind="skin", low=-5, high=15)]
+    c = Coordinates(params)
+    u = c.to_u({"k": 1.0, "s": 5.0})
+    assert np.allclose(u, [0.0, 0.0])
+    assert c.to_values(np.array([1.0, -1.0])) == pytest.approx({"k": 10.0, "s": -5.0})
+    assert c.to_values(np.array([0.5, 0.5]))["k"] == pytest.approx(10 ** 0.5)
+
+
+def _model(u):
+    t = np.linspace(0, 1, 30)
+    return np.exp(-2.0 * (u[0] + 1) * t) * (1 + 0.5 * u[1]) + 0.3 * u[2] * t
+
+
+def test_bounded_lm_converges_on_a_nonlinear_problem_and_respects_bounds():
+    u_true = np.array([0.3, -0.4, 0.6])
+    data = _model(u_true)
+    lm = LevenbergMarquardt(np.zeros(3), LMSettings(fd_step=0.01, max_iter=30, ftol=1e-10,
+                                                    atol=0.0, max_evaluations=300))
+    run_lockstep([lm], lambda batch: [(_model(u) - data, None) for _, u in batch])
+    assert np.allclose(lm.best.u, u_true, atol=2e-3)
+    # the optimum outside the box: the fit stops at the bound
+    data2 = _model(np.array([0.3, -0.4, 2.0]))
+    lm2 = LevenbergMarquardt(np.zeros(3), LMSettings(fd_step=0.01, max_iter=30, ftol=1e-10,
+                                                     atol=0.0, max_evaluations=300))
+    run_lockstep([lm2], lambda batch: [(_model(u) - data2, None) for _, u in batch])
+    assert lm2.best.u[2] == pytest.approx(1.0) and np.all(np.abs(lm2.best.u) <= 1.0)
+
+
+def test_lockstep_batches_every_minimiser_and_failed_runs_are_survived():
+    data = _model(np.array([0.1, 0.2, -0.3]))
+    batches = []
+
+    def evaluate(batch):
+        batches.append(len(batch))
+        return [(None if abs(u[0] - 0.5) < 1e-9 else _model(u) - data, None) for _, u in batch]
+
+    ms = [LevenbergMarquardt(np.zeros(3), LMSettings(fd_step=0.05)),
+          LevenbergMarquardt(np.full(3, 0.5), LMSettings(fd_step=0.05))]
+    run_lockstep(ms, evaluate)
+    assert batches[0] == 8  # both start points and their finite differences at once
+    assert ms[0].done and ms[0].best.ssr < 1e-3
+    assert ms[1].done and ms[1].reason == "the start point failed to simulate"
+
+
+# ============================================================================ extensions
+@pytest.fixture(scope="module")
+def punq_info():
+    pytest.importorskip("opm.io")
+    if not (PUNQ / "PUNQS3.DATA").is_file():
+        pytest.skip(f"PUNQ-S3 data not found at {PUNQ}")
+    from hmcore.deck_info import DeckInfo
+
+    return DeckInfo.inspect(PUNQ / "PUNQS3.DATA")
+
+
+@needs_punq
+def test_extension_library_for_punq(punq_info, tmp_path):
+    from hmcore.deck import prepare_run_deck
+    from hmcore.diagnosis.extensions import KINDS, build_candidates, extended_space
+
+    space = ParameterSpace.reference()
+    cands = build_candidates(punq_info, space, {"skin": 5.0})
+    kinds = {c.kind for c in cands}
+    assert kinds == set(KINDS)
+    by = {c.id: c for c in cands}
+    nx, ny, nz = punq_info.dims
+    assert {c.wells[0] for c in cands if c.kind == "well_skin"} == set(punq_info.producers)
+    assert by["well_skin:PRO-1"].neutral == 5.0  # the calibrated global skin
+    assert by["regional_permeability:PRO-1"].parameter.box == (7, 13, 19, 25, 1, nz)
+    assert [c.layers for c in cands if c.kind == "layer_permeability"] == [(k,) for k in
+                                                                         range(1, nz + 1)]
+    assert by["layer_permeability:5"].wells == ("PRO-1", "PRO-4", "PRO-12")
+    # the global PERMZ multiplier exists, so only per-layer vertical candidates
+    assert [c.id for c in cands if c.kind == "vertical_permeability"] == \
+        [f"vertical_permeability:{k}" for k in range(1, nz + 1)]
+    aq = [c for c in cands if c.kind == "aquifer_strength"]
+    assert [(c.parameter.keywords, c.parameter.item, c.parameter.match) for c in aq] == \
+        [(("AQUCT",), 4, "1"), (("AQUCT",), 4, "2")]
+    faults = [c for c in cands if c.kind == "fault_transmissibility"]
+    assert {c.parameter.keywords[0] for c in faults} == {"MULTX", "MULTY"}
+    for c in faults:  # a plane between two non-empty groups of wells, through all layers
+        a, b = c.details["groups"]
+        assert a and b and c.parameter.box[4:] == (1, nz)
+    relperm = {c.details["phase"]: c.parameter for c in cands if c.kind == "relative_permeability"}
+    assert relperm["water"].keywords == ("SWFN",) and relperm["gas"].keywords == ("SGFN",)
+    assert all(p.mode == "power" and p.item == 2 for p in relperm.values())
+    for c in cands:
+        assert c.description and c.parameter.low < c.neutral <= c.parameter.high or \
+            c.parameter.low <= c.neutral <= c.parameter.high
+        json.dumps(c.machine())
+    # every candidate renders into a per-run deck (no simulation)
+    ext = extended_space(space, cands)
+    values = {c.name: c.probe for c in cands}
+    deck = prepare_run_deck(PUNQ / "PUNQS3.DATA", values, ext, tmp_path / "deck", punq_info)
+    text = deck.read_text()
+    assert "'MULTX' 0.01 9 9 1 28 1 5 /" in text
+    assert "'PERMX' 0.4 1 19 1 28 3 3 /" in text
+    assert "41.25" in text  # AQUCT item 4 (137.5 mD) x 0.3
+
+
+def test_extension_library_for_the_synthetic_deck(tmp_path):
+    pytest.importorskip("opm.io")
+    from hmcore.diagnosis.extensions import build_candidates
+    from hmcore.diagnosis.hidden import draw_effect, synthetic_deck_info
+
+    info = synthetic_deck_info(0, tmp_path)
+    space = ParameterSpace.reference()
+    cands = build_candidates(info, space, {"skin": 3.0})
+    aq = {c.parameter.item: c for c in cands if c.kind == "aquifer_strength"}
+    assert set(aq) == {4, 6} and aq[4].parameter.keywords == ("AQUFETP",)
+    assert aq[4].parameter.match is None  # one aquifer
+    tables = {c.parameter.keywords[0] for c in cands if c.kind == "relative_permeability"}
+    assert tables == {"SWOF", "SGOF"}
+    # hidden effects are drawn deterministically per seed, inside the bounds
+    for kind in ("well_skin", "fault_transmissibility", "aquifer_strength"):
+        e1 = draw_effect(kind, 7, info, space, {"skin": 3.0})
+        e2 = draw_effect(kind, 7, info, space, {"skin": 3.0})
+        assert e1 == e2 and e1.kind == kind
+        assert e1.parameter.low <= e1.value <= e1.parameter.high
+    kinds_by_seed = {draw_effect("layer_permeability", s, info, space, {}).candidate.layers
+                     for s in range(12)}
+    assert len(kinds_by_seed) >= 3  # the seed varies the layer
+
+
+# ============================================================================ orchestration
+class LinearSimulator:
+    """A stand-in simulator: every parameter adds a fixed random signature times its change
+    from the neutral value (in scaled coordinates) to smooth base responses of four wells, so
+    the diagnosis's job is exact linear algebra plus noise."""
+
+    def __init__(self, hidden: Parameter | None = None, hidden_value: float = 1.0, seed: int = 0):
+        self.hidden, self.hidden_value = hidden, hidden_value
+        self.seed = seed
+        self.days = np.arange(1, 61) * 30.0
+        self.wells = ("PROD1", "PROD2", "PROD3", "PROD4")
+        self.calls = 0
+
+    def signature(self, name: str) -> np.ndarray:
+        rng = np.random.default_rng([self.seed, sum(map(ord, name)) * 7 + len(name)])
+        t = self.days / self.days[-1]
+        out = []
+        for w in self.wells:
+            for amp in (10.0, 0.1, 0.2):  # bhp (bar), wct, relative gor
+                a, b, c = rng.standard_normal(3)
+                out.append(amp * (a + b * t + c * np.sin(3 * t + a)) * (rng.random() < 0.6))
+        return np.concatenate(out)
+
+    @staticmethod
+    def change(p: Parameter, value: float, values: dict[str, float]) -> float:
+        """Scaled change of ``p`` from its neutral value (1 for multipliers, the deck's 0 for
+        the global skin, the global skin for a well's own skin)."""
+        neutral = 1.0 if p.kind != "skin" else (values.get("skin", 0.0) if p.wells else 0.0)
+        c = Coordinates([p])
+        return float(c.to_u({p.name: value})[0] - c.to_u({p.name: neutral})[0])
+
+    def responses(self, case, values: dict[str, float], truth: bool = False) -> pd.DataFrame:
+        total = np.zeros(len(self.wells) * 3 * self.days.size)
+        params = [p for p in case.space.parameters if p.name in values]
+        if truth and self.hidden is not None:  # only the truth hides it
+            params.append(self.hidden)
+            values = {**values, self.hidden.name: self.hidden_value}
+        for p in params:
+            total += self.signature(p.name) * self.change(p, values[p.name], values)
+        frames = []
+        n = self.days.size
+        for k, w in enumerate(self.wells):
+            bhp = 200 - 0.02 * self.days + total[(3 * k) * n:(3 * k + 1) * n]
+            wct = np.clip(0.3 + total[(3 * k + 1) * n:(3 * k + 2) * n], 0, 1)
+            gor = 100 * (1 + 0.5 * self.days / 1800) * np.exp(total[(3 * k + 2) * n:(3 * k + 3) * n])
+            oil = np.full(n, 100.0)
+            for q, v in (("WBHP", bhp), ("WWCT", wct), ("WGOR", gor), ("WOPR", oil),
+                         ("WWPR", oil * wct / (1 - wct)), ("WGPR", oil * gor)):
+                frames.append(pd.DataFrame({"well": w, "days": self.days, "quantity": q,
+                                            "value": v}))
+        return pd.concat(frames, ignore_index=True)
+
+    def evaluate_batch(self, case, values_list, step="run"):
+        self.calls += len(values_list)
+        return [SimpleNamespace(status="COMPLETE", responses=self.responses(case, v),
+                                sim_time_s=0.0, reason="") for v in values_list]
+
+
+def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0):
+    pytest.importorskip("opm.io")
+    from hmcore.case import load_case
+    from hmcore.diagnosis.hidden import noisy_history
+    from hmcore.synthetic import DECK_NAME, make_fields, render_deck
+
+    field_rng, _ = np.random.default_rng(0).spawn(2)
+    (tmp_path / DECK_NAME).write_text(render_deck(make_fields(field_rng), 0))
+    sim = LinearSimulator(hidden, hidden_value, seed)
+    case0 = SimpleNamespace(space=ParameterSpace.reference())
+    truth = {"poro_mult": 1.05, "permx_mult": 1.5, "permy_mult": 0.7, "permz_mult": 0.6,
+             "skin": 4.0}
+    obs = noisy_history(sim.responses(case0, truth, truth=True), np.random.default_rng(seed))
+    obs.to_csv(tmp_path / "observed.csv", index=False)
+    (tmp_path / "case.toml").write_text(f'[case]\nname = "linear"\ndeck = "{DECK_NAME}"\n'
+                                        'observed = "observed.csv"\nhistory_end_days = 1350\n')
+    return load_case(tmp_path / "case.toml"), sim, truth
+
+
+@pytest.mark.parametrize("hidden", ["well_skin:PROD3", "layer_permeability:2",
+                                    "fault_transmissibility:i10", None])
+def test_diagnosis_orchestration_on_a_linear_simulator(tmp_path, hidden):
+    from hmcore.diagnosis import DiagnosisSettings, diagnose
+    from hmcore.diagnosis.extensions import build_candidates
+
+    param, value = None, 1.0
+    if hidden:
+        from hmcore.diagnosis.hidden import synthetic_deck_info
+
+        cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
+                                                   ParameterSpace.reference(), {"skin": 4.0})}
+        param = cands[hidden].parameter
+        value = {"skin": 12.0, "multiply": 0.3}[param.kind]
+        value = 0.005 if hidden.startswith("fault") else value
+    case, sim, truth = _linear_case(tmp_path, param, value)
+    doc = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(plots=True),
+                   out_dir=tmp_path / "out")
+    assert set(doc["gain"]) >= {"fit_before", "fit_after", "heldout_before", "heldout_after"}
+    assert (tmp_path / "out" / "diagnosis.json").is_file()
+    assert (tmp_path / "out" / "report.md").read_text().startswith("# Diagnosis")
+    assert list((tmp_path / "out").glob("*.png"))
+    saved = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
+    assert [c["kind"] for c in saved["causes"]] == [c["kind"] for c in doc["causes"]]
+    assert "none" in [c["kind"] for c in doc["causes"]]
+    if hidden is None:
+        assert doc["causes"][0]["kind"] == "none" and doc["selected"] is None
+        assert doc["gain"]["fit_after"] == doc["gain"]["fit_before"]
+        assert "no candidate" in doc["verdict"]
+    else:
+        assert doc["causes"][0]["id"] == hidden
+        assert doc["selected"]["id"] == hidden
+        g = doc["gain"]
+        assert g["fit_after"] < g["fit_before"] and g["heldout_after"] < g["heldout_before"]
+        assert g["ssr_heldout_after"] < g["ssr_heldout_before"]
+
+
+def test_budget_caps_the_simulator_calls_and_says_when_the_ranking_cannot_fit(tmp_path):
+    from hmcore.diagnosis import DiagnosisSettings, diagnose
+
+    case, sim, _ = _linear_case(tmp_path)
+    doc = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(budget=60, plots=False))
+    assert doc["cost"]["simulations"] == sim.calls <= 60
+    sim2 = LinearSimulator()
+    with pytest.raises(ValueError, match="the ranking needs"):
+        diagnose(case, sim2.evaluate_batch, settings=DiagnosisSettings(budget=25, plots=False))
+    assert sim2.calls <= 25
+
+
+def test_cli_printing_of_a_diagnosis(tmp_path):
+    """What ``hmflow diagnose`` prints: ranked causes, the selected extension, the gain and the
+    path of diagnosis.json (the flow itself runs in test_diagnosis_hidden.py)."""
+    from rich.console import Console
+
+    from flows.diagnose import print_diagnosis
+    from hmcore.diagnosis import diagnose
+
+    hidden = Parameter(name="skin_PROD3", kind="skin", wells=("PROD3",), low=-5, high=30)
+    case, sim, _ = _linear_case(tmp_path, hidden, 12.0)
+    doc = diagnose(case, sim.evaluate_batch, out_dir=tmp_path / "out")
+    result = {**doc, "diagnosis_path": str(tmp_path / "out" / "diagnosis.json"),
+              "report_path": str(tmp_path / "out" / "report.md")}
+    console = Console(width=150, record=True)
+    print_diagnosis(result, console)
+    text = console.export_text()
+    assert "Ranked causes" in text and "well_skin" in text and "PROD3" in text
+    assert "selected: well_skin (well_skin:PROD3)" in text
+    assert "fitted" in text and "held back" in text and "diagnosis.json" in text

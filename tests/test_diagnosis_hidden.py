@@ -1,0 +1,183 @@
+"""Hide an effect in the "measured" data and require the diagnosis to find it (real OPM Flow).
+
+Each case: the truth = the five global parameters + one extension drawn by seed (kind, which
+well / layer / fault plane / aquifer / table, realistic strength), realistic correlated noise;
+the diagnosis runs on the unmodified base model and must rank the hidden kind (and well or
+layer) first, select it, and improve the held-back misfit. A control with nothing hidden must
+report ``none``.
+
+Default run (CI): three seeded synthetic cases of different kinds (one through the Prefect
+flow and its CLI printing), the control, and one PUNQ-S3 case whose measured data are made
+from a truth run of PUNQS3.DATA with the effect applied. ``-m slow``: the full sweep, every
+kind on several seeds, synthetic and PUNQ-S3.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import pytest
+
+from hmcore.diagnosis.extensions import KINDS
+
+PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
+pytestmark = [pytest.mark.opm]
+
+DEFAULT_CASES = [("aquifer_strength", 3), ("layer_permeability", 4)]
+FLOW_CASE = ("well_skin", 1)
+PUNQ_DEFAULT = ("regional_permeability", 2)
+SWEEP_SEEDS = (11, 12)
+PUNQ_HISTORY_END = 2200.0
+PUNQ_RECORD_END = 2936.0  # the measured record of PUNQ-S3: the first 8 years
+TIMES: dict[str, float] = {}
+
+
+def _opm():
+    try:
+        import opm.io  # noqa: F401
+        import opm.simulators  # noqa: F401
+    except ImportError:
+        pytest.skip("OPM Python packages (opm, opm-simulators) not installed")
+
+
+def assert_found(doc: dict, effect) -> None:
+    """The hidden kind (and well / layer / plane / aquifer / phase) ranks first, is selected,
+    and the held-back misfit improves (see :func:`hmcore.diagnosis.hidden.judge`)."""
+    from hmcore.diagnosis.hidden import judge
+
+    j = judge(doc, effect)
+    what = f"hidden {j['hidden']} = {j.get('value', 0):.4g}; ranked {j['ranking']}; {j['verdict']}"
+    assert j["ranked_first"], what
+    assert j["selected"], what
+    assert j["heldout_improved"], what
+    g = doc["gain"]
+    assert g["fit_after"] < g["fit_before"]
+
+
+def diagnose_synthetic(tmp: Path, kind: str | None, seed: int):
+    from hmcore.case import load_case
+    from hmcore.diagnosis import diagnose, local_evaluator
+    from hmcore.diagnosis.hidden import write_hidden_synthetic_case
+
+    start = time.perf_counter()
+    case_toml, effect = write_hidden_synthetic_case(tmp / "case", seed, kind)
+    doc = diagnose(load_case(case_toml), local_evaluator(tmp / "runs", workers=2),
+                   out_dir=tmp / "out")
+    TIMES[f"synthetic-{kind}-{seed}"] = time.perf_counter() - start
+    shutil.rmtree(tmp / "runs", ignore_errors=True)
+    return doc, effect
+
+
+def diagnose_punq(tmp: Path, kind: str, seed: int):
+    from hmcore.case import load_case
+    from hmcore.diagnosis import diagnose, local_evaluator
+    from hmcore.diagnosis.hidden import write_hidden_deck_case
+
+    if not (PUNQ / "PUNQS3.DATA").is_file():
+        pytest.skip(f"PUNQ-S3 data not found at {PUNQ}")
+    start = time.perf_counter()
+    truth = {"poro_mult": 1.0, "permx_mult": 1.0, "permy_mult": 1.0, "permz_mult": 1.0,
+             "skin": 5.0}
+    case_toml, effect = write_hidden_deck_case(tmp / "case", PUNQ / "PUNQS3.DATA", seed,
+                                               truth=truth, kind=kind,
+                                               history_end_days=PUNQ_HISTORY_END,
+                                               with_sigma=False, name="punq-hidden",
+                                               end_days=PUNQ_RECORD_END)
+    doc = diagnose(load_case(case_toml), local_evaluator(tmp / "runs", workers=2),
+                   out_dir=tmp / "out")
+    TIMES[f"punq-{kind}-{seed}"] = time.perf_counter() - start
+    shutil.rmtree(tmp / "runs", ignore_errors=True)
+    return doc, effect
+
+
+# ============================================================================= default run
+@pytest.mark.parametrize("kind,seed", DEFAULT_CASES, ids=[f"{k}-{s}" for k, s in DEFAULT_CASES])
+def test_hidden_effect_is_found_in_the_synthetic_case(tmp_path, kind, seed):
+    _opm()
+    doc, effect = diagnose_synthetic(tmp_path, kind, seed)
+    assert_found(doc, effect)
+    assert list((tmp_path / "out").glob("residuals_*.png"))
+
+
+def test_control_with_nothing_hidden_reports_none(tmp_path):
+    _opm()
+    doc, _ = diagnose_synthetic(tmp_path, None, 5)
+    assert doc["causes"][0]["kind"] == "none"
+    assert doc["selected"] is None and "no candidate" in doc["verdict"]
+    g = doc["gain"]
+    assert g["fit_after"] == g["fit_before"] and g["heldout_after"] == g["heldout_before"]
+    top = max(c["chi2"] for c in doc["causes"] if c["kind"] != "none")
+    assert top < doc["settings"]["chi2_threshold"] / 3  # far from the line, not just under it
+
+
+def test_hidden_effect_is_found_in_punq_s3(tmp_path):
+    _opm()
+    doc, effect = diagnose_punq(tmp_path, *PUNQ_DEFAULT)
+    assert_found(doc, effect)
+    # the noise was estimated (the CSV has no sigma), close to the description's 3 bar
+    levels = [lv["sigma"] for lv in doc["calibration"]["noise"]["WBHP"]["levels"]
+              if lv["segment"] == "flowing"]
+    assert 1.5 < sorted(levels)[len(levels) // 2] < 5.0
+
+
+def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, capsys):
+    """The Prefect flow (simulations as tasks, two at a time) end to end, and the CLI print."""
+    _opm()
+    from rich.console import Console
+
+    from flows.diagnose import STEPS, diagnose_command
+    from hmcore.diagnosis.hidden import write_hidden_synthetic_case
+    from storage import ArtifactStore
+
+    kind, seed = FLOW_CASE
+    start = time.perf_counter()
+    case_toml, effect = write_hidden_synthetic_case(tmp_path / "case", seed, kind)
+    console = Console(width=160, record=True)
+    result = diagnose_command(case=str(case_toml), storage=tmp_path / "store", workers=2,
+                              campaign="hidden-skin", console=console)
+    TIMES[f"flow-synthetic-{kind}-{seed}"] = time.perf_counter() - start
+    doc = json.loads(Path(result["diagnosis_path"]).read_text())
+    assert_found(doc, effect)
+    store = ArtifactStore(tmp_path / "store")
+    for step in STEPS:
+        assert store.latest("hidden-skin", step) is not None, step
+    assert store.latest("hidden-skin", "diagnosis-report").verify() == []
+    files = store.latest("hidden-skin", "diagnosis-report").files
+    assert "diagnosis.json" in files and "report.md" in files
+    assert any(f.startswith("residuals_") and f.endswith(".png") for f in files)
+    ranking = store.latest("hidden-skin", "diagnosis-ranking").read_json("ranking.json")
+    assert len(ranking["candidates"]) == len(doc["ranking"]["candidates"])
+    text = console.export_text()
+    assert "Ranked causes" in text and "well_skin" in text and "diagnosis.json" in text
+    assert result["simulations"] == doc["cost"]["simulations"]
+
+
+# ============================================================================= slow sweep
+SWEEP = [(k, s) for k in KINDS for s in SWEEP_SEEDS]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind,seed", SWEEP, ids=[f"{k}-{s}" for k, s in SWEEP])
+def test_sweep_synthetic(tmp_path, kind, seed):
+    _opm()
+    doc, effect = diagnose_synthetic(tmp_path, kind, seed)
+    assert_found(doc, effect)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", KINDS)
+def test_sweep_punq(tmp_path, kind):
+    _opm()
+    doc, effect = diagnose_punq(tmp_path, kind, 21)
+    assert_found(doc, effect)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", (6, 7))
+def test_sweep_controls(tmp_path, seed):
+    _opm()
+    doc, _ = diagnose_synthetic(tmp_path, None, seed)
+    assert doc["causes"][0]["kind"] == "none" and doc["selected"] is None
