@@ -1,19 +1,25 @@
 # The two commands of the README. Both create ./.venv and install hmflow into it first.
 #   make run    - install, then run the main job (a 200-call SAC campaign on the built-in synthetic case)
 #   make test   - install (with test extras and Debian's OPM `flow` when apt is usable), then run the tests
+#                 (real OPM, Prefect and Parquet integration tests included; `-m slow` ones are the long sweeps)
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
+# A path-based editable install (a .pth with the repository root), not setuptools' import hook:
+# a Dask worker puts its local directory first on sys.path and spills to <dir>/storage, a
+# namespace directory that the import hook never gets to override, so `storage` would not
+# import there. On an ordinary sys.path entry the real package wins over a namespace dir.
+EDITABLE := --config-settings editable_mode=compat
 
 .PHONY: install install-test run test
 
 install:
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e .
+	$(BIN)/pip install -q -e . $(EDITABLE)
 
 install-test: install
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q -e '.[test]' $(EDITABLE)
 	command -v flow >/dev/null || (command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ] && \
 	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q libopm-simulators-bin >/dev/null) || \
 	  echo "note: Debian's flow is not installed; the command-line backend tests will be skipped"
@@ -22,4 +28,4 @@ run: install
 	$(BIN)/hmflow run
 
 test: install-test
-	HMFLOW_CACHE_DIR=$$(mktemp -d) PREFECT_HOME=$$(mktemp -d) $(BIN)/python -m pytest -q
+	HMFLOW_CACHE_DIR=$$(mktemp -d) PREFECT_HOME=$$(mktemp -d) $(BIN)/python -m pytest -q -m 'not slow'

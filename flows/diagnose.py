@@ -171,13 +171,14 @@ def print_diagnosis(result: dict, console=None, most: int = 8) -> None:
 
 def diagnose_command(case: str = "synthetic", storage: Path = Path(DEFAULT_STORAGE),
                      budget: Optional[int] = None, workers: int = 2,
-                     campaign: Optional[str] = None, console=None) -> dict:
+                     campaign: Optional[str] = None,
+                     calibrated: Optional[dict[str, float]] = None, console=None) -> dict:
     """``hmflow diagnose``: run the flow with ``workers`` simulations at a time and print the
     ranked causes, the gain and the path of diagnosis.json. Returns the flow's result."""
     from prefect.task_runners import ThreadPoolTaskRunner
 
     flow_fn = diagnose_flow.with_options(task_runner=ThreadPoolTaskRunner(max_workers=workers))
     result = flow_fn(case=str(case), storage=str(Path(storage).resolve()), budget=budget,
-                     campaign=campaign, workers=workers)
+                     campaign=campaign, workers=workers, calibrated=calibrated)
     print_diagnosis(result, console)
     return result

@@ -37,30 +37,46 @@ def align(observed: pd.DataFrame, simulated: pd.DataFrame, tolerance_days: float
     ``observed``: well, quantity, days, value (+ optional sigma, flowing, derived).
     ``simulated``: well, quantity, days, value. Both in the same units; days since START.
     """
+    obs = observed.sort_values(["well", "quantity"], kind="stable")  # grouped, row order kept
     # times that coincide after rounding keep the later record, whatever the row order
-    sim_groups = {k: g.sort_values("days", kind="stable").drop_duplicates("days", keep="last")
-                  for k, g in simulated.sort_index().groupby(["well", "quantity"])}
-    pieces = []
-    for key, obs in observed.groupby(["well", "quantity"], sort=True):
-        sim = sim_groups.get(key)
-        if sim is None or sim.empty:
-            continue
-        t = sim["days"].to_numpy(float)
-        v = sim["value"].to_numpy(float)
-        od = obs["days"].to_numpy(float)
-        idx = np.clip(np.searchsorted(t, od), 1, len(t) - 1) if len(t) > 1 else np.zeros(len(od), int)
-        if len(t) > 1:
-            left_closer = np.abs(od - t[idx - 1]) <= np.abs(t[idx] - od)
-            idx = np.where(left_closer, idx - 1, idx)
-        ok = np.abs(t[idx] - od) <= tolerance_days + 1e-9
-        if not ok.any():
-            continue
-        pieces.append(pd.DataFrame({
-            "well": key[0], "quantity": key[1], "days": od[ok], "sim_days": t[idx][ok],
-            "observed": obs["value"].to_numpy(float)[ok], "simulated": v[idx][ok],
-            "sigma": (obs["sigma"].to_numpy(float) if "sigma" in obs else np.full(len(od), np.nan))[ok],
-            "flowing": (obs["flowing"].to_numpy(bool) if "flowing" in obs else np.ones(len(od), bool))[ok],
-            "derived": (obs["derived"].to_numpy(bool) if "derived" in obs else np.zeros(len(od), bool))[ok],
-        }))
-    pairs = pd.concat(pieces, ignore_index=True) if pieces else pd.DataFrame(columns=ALIGNED_COLUMNS)
+    sim = (simulated.sort_index()
+           .sort_values(["well", "quantity", "days"], kind="stable")
+           .drop_duplicates(["well", "quantity", "days"], keep="last"))
+    s_key = _keys(sim)
+    o_key = _keys(obs)
+    codes, _ = pd.factorize(np.concatenate([s_key, o_key]))
+    s_code, o_code = codes[: len(s_key)], codes[len(s_key):]
+    t = sim["days"].to_numpy(float)
+    v = sim["value"].to_numpy(float)
+    od = obs["days"].to_numpy(float)
+    order = np.lexsort((t, s_code))
+    t, v, s_code = t[order], v[order], s_code[order]
+    # one sorted axis for every (well, quantity): code * span + days, groups never overlap
+    span = 2.0 * (max(float(np.abs(t).max(initial=0.0)), float(np.abs(od).max(initial=0.0)))
+                  + tolerance_days) + 1.0
+    right = np.searchsorted(s_code * span + t, o_code * span + od)
+    left = right - 1
+    n = len(t)
+    has_left = (left >= 0) & (s_code[np.clip(left, 0, max(n - 1, 0))] == o_code) if n else left >= n
+    has_right = (right < n) & (s_code[np.clip(right, 0, max(n - 1, 0))] == o_code) if n else right < 0
+    li, ri = np.clip(left, 0, max(n - 1, 0)), np.clip(right, 0, max(n - 1, 0))
+    d_left = np.where(has_left, np.abs(od - (t[li] if n else 0.0)), np.inf)
+    d_right = np.where(has_right, np.abs((t[ri] if n else 0.0) - od), np.inf)
+    idx = np.where(d_left <= d_right, li, ri)  # the earlier record wins a tie
+    ok = np.minimum(d_left, d_right) <= tolerance_days + 1e-9
+    m = len(od)
+    pairs = pd.DataFrame({
+        "well": obs["well"].to_numpy()[ok], "quantity": obs["quantity"].to_numpy()[ok],
+        "days": od[ok], "sim_days": t[idx][ok] if n else od[ok],
+        "observed": obs["value"].to_numpy(float)[ok], "simulated": v[idx][ok] if n else od[ok],
+        "sigma": (obs["sigma"].to_numpy(float) if "sigma" in obs else np.full(m, np.nan))[ok],
+        "flowing": (obs["flowing"].to_numpy(bool) if "flowing" in obs else np.ones(m, bool))[ok],
+        "derived": (obs["derived"].to_numpy(bool) if "derived" in obs else np.zeros(m, bool))[ok],
+    }, columns=ALIGNED_COLUMNS)
     return Alignment(pairs, len(observed))
+
+
+def _keys(frame: pd.DataFrame) -> np.ndarray:
+    """One label per row for its (well, quantity)."""
+    return (frame["well"].astype(str).to_numpy(object) + "\x00"
+            + frame["quantity"].astype(str).to_numpy(object))

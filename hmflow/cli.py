@@ -270,6 +270,41 @@ def report(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
     _print_report(storage, campaign)
 
 
+@app.command()
+def diagnose(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
+             storage: Path = typer.Option(Path("./hmflow-storage"), "--storage",
+                                          help="Artifact store"),
+             budget: Optional[int] = typer.Option(None, "--budget", min=1, help="Cap on simulator "
+                                                  "calls (default: as many as the steps need)"),
+             workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
+             campaign: Optional[str] = typer.Option(None, "--campaign", help="Name the diagnosis "
+                                                    "is stored under (default CASE-diagnosis)"),
+             from_campaign: Optional[str] = typer.Option(
+                 None, "--from-campaign", help="Start from this stored campaign's best "
+                 "parameters instead of calibrating the case's parameters first")) -> None:
+    """Find what the calibrated model gets wrong, name the cause, extend the model, measure the
+    gain on the fitted and the held-back history; writes diagnosis.json (path printed)."""
+    from flows.diagnose import diagnose_command
+
+    _load(case)  # clear errors before any simulator time or Prefect start-up
+    calibrated = None
+    if from_campaign:
+        from storage import ArtifactStore
+
+        best = ArtifactStore(storage.resolve()).latest(from_campaign, "best")
+        if best is None:
+            err_console.print(f"[red]x[/] no archived best case of campaign '{from_campaign}' in "
+                              f"{storage}: run `hmflow run --campaign {from_campaign}` first")
+            raise typer.Exit(2)
+        calibrated = best.read_json("params.json")
+    try:
+        diagnose_command(case=case, storage=storage, budget=budget, workers=workers,
+                         campaign=campaign, calibrated=calibrated, console=console)
+    except ValueError as exc:
+        err_console.print(f"[red]x[/] {exc}")
+        raise typer.Exit(2)
+
+
 def main() -> None:  # pragma: no cover - console entry
     app()
 

@@ -55,3 +55,14 @@ def test_run_on_a_bad_case_fails_before_any_simulation(tmp_path):
     assert run.returncode == 2
     assert "deck file not found" in run.stderr and "observed history file not found" in run.stderr
     assert not (tmp_path / "hmflow-storage").exists()
+
+
+def test_diagnose_on_a_bad_case_or_a_missing_campaign_fails_before_any_simulation(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[case]\nname = "x"\ndeck = "missing.DATA"\nobserved = "missing.csv"\n')
+    run = hmflow("diagnose", "--case", str(bad), cwd=tmp_path)
+    assert run.returncode == 2 and "deck file not found" in run.stderr
+    run = hmflow("diagnose", "--from-campaign", "nope", "--storage", str(tmp_path / "store"),
+                 cwd=tmp_path)
+    assert run.returncode == 2 and "no archived best case of campaign 'nope'" in run.stderr
+    assert not (tmp_path / "hmflow-storage").exists() and not (tmp_path / "store").exists()

@@ -2,14 +2,14 @@
 processes, 1 thread each) and real OPM Flow runs, against a temporary Prefect server
 (``prefect_test_harness``, SQLite in a temporary directory, temporary PREFECT_HOME).
 
-Known problem (see test_dask_worker_imports_the_project_storage_package): a Dask worker puts its
-local directory first on ``sys.path`` and, when it has a memory limit (the default), keeps its
-spill buffer in ``<local directory>/storage``. With hmflow installed in editable mode (a
-setuptools meta-path finder, consulted after the ordinary path search), that directory shadows
-the project's top-level ``storage`` package inside the worker: unpickling the ``simulate`` task
-fails with ``ImportError: cannot import name 'ArtifactStore' from 'storage' (unknown
-location)``, the worker shuts down and the flow waits forever. The campaign test below
-therefore runs its workers with ``memory_limit=0`` (no spill buffer, no ``storage`` dir).
+A Dask worker puts its local directory first on ``sys.path`` and, with a memory limit (the
+default), keeps its spill buffer in ``<local directory>/storage``: a namespace directory named
+like hmflow's top-level ``storage`` package. With setuptools' default editable install (an
+import hook consulted after the ordinary path search) that directory shadowed the package in
+the worker, unpickling the ``simulate`` task failed and the flow waited forever. The Makefile
+therefore installs in ``editable_mode=compat`` (the repository root on ``sys.path``, where a
+regular package wins over a namespace directory); test_dask_worker_imports_the_project_storage_package
+guards it with and without a memory limit.
 """
 
 from __future__ import annotations
@@ -34,8 +34,7 @@ requires_dask = pytest.mark.skipif(importlib.util.find_spec("prefect_dask") is N
 
 # loopback only; the scheduler's HTTP server on a free port rather than 8787
 LOOPBACK = {"host": "127.0.0.1", "dashboard_address": "127.0.0.1:0"}
-CLUSTER_KWARGS = {"n_workers": 2, "threads_per_worker": 1, "processes": True,
-                  "memory_limit": 0, **LOOPBACK}
+CLUSTER_KWARGS = {"n_workers": 2, "threads_per_worker": 1, "processes": True, **LOOPBACK}
 
 
 def _recording_cluster_class():
@@ -137,11 +136,7 @@ if __name__ == "__main__":
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("worker_kwargs", [
     pytest.param({"memory_limit": 0}, id="no-memory-limit"),
-    pytest.param({}, id="default-memory-limit", marks=pytest.mark.xfail(
-        reason="known problem: with a memory limit (Dask's default, and what `hmflow run "
-               "--task-runner dask` uses) the worker's spill dir <local dir>/storage shadows "
-               "hmflow's top-level `storage` package (editable install): tasks/simulate.py "
-               "cannot be unpickled there and the flow waits forever", strict=False)),
+    pytest.param({}, id="default-memory-limit"),  # what `hmflow run --task-runner dask` uses
 ])
 def test_dask_worker_imports_the_project_storage_package(worker_kwargs, tmp_path):
     """In a fresh interpreter whose sys.path does not hold the repository (as under the

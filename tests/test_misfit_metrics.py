@@ -163,6 +163,30 @@ def test_points_outside_the_tolerance_are_ignored_and_lower_coverage(data, extra
     _assert_nested_close(compute_metrics(base.pairs), compute_metrics(more.pairs))
 
 
+@SETTINGS
+@given(tables(), st.floats(0.1, 40.0))
+def test_alignment_matches_a_brute_force_nearest_search(data, tol):
+    """The vectorised search pairs each observation with the nearest simulated time of its
+    well and quantity (the earlier one on a tie; of equal times the later row)."""
+    obs, sim = data
+    got = align(obs, sim, tolerance_days=tol).pairs
+    expected = []
+    for _, o in obs.iterrows():
+        cand = sim[(sim.well == o.well) & (sim.quantity == o.quantity)]
+        if cand.empty:
+            continue
+        d = (cand.days - o.days).abs()
+        best = cand[d == d.min()]
+        best = best[best.days == best.days.min()].iloc[-1]
+        if abs(best.days - o.days) <= tol + 1e-9:
+            expected.append((o.well, o.quantity, float(o.days), float(best.days),
+                             float(o.value), float(best.value)))
+    key = lambda r: r[:3] + r[4:5]  # noqa: E731
+    actual = [(r.well, r.quantity, r.days, r.sim_days, r.observed, r.simulated)
+              for r in got.itertuples()]
+    assert sorted(actual, key=key) == sorted(expected, key=key)
+
+
 def test_a_point_just_inside_the_tolerance_is_matched_and_just_outside_is_not():
     sim = pd.DataFrame({"well": "W", "quantity": "WBHP", "days": [100.0], "value": [200.0]})
     obs = pd.DataFrame({"well": "W", "quantity": "WBHP", "days": [70.0, 69.9, 130.0, 130.1],
