@@ -66,7 +66,6 @@ def _write_case(tmp_path: Path) -> Path:
     return path
 
 
-@pytest.mark.slow
 @pytest.mark.opm
 @requires_punq
 @requires_dask

@@ -34,7 +34,7 @@ RUN_TIMEOUT_S = 240
 
 _missing = [n for n in PUNQ_FILES if not (PUNQ / n).is_file()]
 pytestmark = [
-    pytest.mark.slow, pytest.mark.opm,
+    pytest.mark.opm,
     pytest.mark.skipif(bool(_missing), reason=f"PUNQ-S3 data not found in {PUNQ} (expected "
                        f"../shared/punqs3 next to the repository; missing {_missing})"),
     pytest.mark.skipif(not PREFECT.is_file(), reason=f"prefect CLI not found at {PREFECT}"),

@@ -142,7 +142,6 @@ def test_corner_sample_is_as_specified(punq_case):
 
 
 @pytest.mark.opm
-@pytest.mark.slow
 def test_truth_is_clearly_better_than_every_sampled_corner(punq_case, truth_score, tmp_path):
     corners = sampled_corners(punq_case.space)
     sim = Throttled(OpmFlow(timeout_s=punq_case.simulator.timeout_s))
