@@ -37,13 +37,14 @@ def align(observed: pd.DataFrame, simulated: pd.DataFrame, tolerance_days: float
     ``observed``: well, quantity, days, value (+ optional sigma, flowing, derived).
     ``simulated``: well, quantity, days, value. Both in the same units; days since START.
     """
+    if simulated.empty or observed.empty:
+        return Alignment(pd.DataFrame(columns=ALIGNED_COLUMNS), len(observed))
     obs = observed.sort_values(["well", "quantity"], kind="stable")  # grouped, row order kept
     # times that coincide after rounding keep the later record, whatever the row order
     sim = (simulated.sort_index()
            .sort_values(["well", "quantity", "days"], kind="stable")
            .drop_duplicates(["well", "quantity", "days"], keep="last"))
-    s_key = _keys(sim)
-    o_key = _keys(obs)
+    s_key, o_key = _keys(sim), _keys(obs)
     codes, _ = pd.factorize(np.concatenate([s_key, o_key]))
     s_code, o_code = codes[: len(s_key)], codes[len(s_key):]
     t = sim["days"].to_numpy(float)
@@ -52,23 +53,21 @@ def align(observed: pd.DataFrame, simulated: pd.DataFrame, tolerance_days: float
     order = np.lexsort((t, s_code))
     t, v, s_code = t[order], v[order], s_code[order]
     # one sorted axis for every (well, quantity): code * span + days, groups never overlap
-    span = 2.0 * (max(float(np.abs(t).max(initial=0.0)), float(np.abs(od).max(initial=0.0)))
-                  + tolerance_days) + 1.0
+    span = 2.0 * (max(np.abs(t).max(), np.abs(od).max()) + tolerance_days) + 1.0
     right = np.searchsorted(s_code * span + t, o_code * span + od)
-    left = right - 1
-    n = len(t)
-    has_left = (left >= 0) & (s_code[np.clip(left, 0, max(n - 1, 0))] == o_code) if n else left >= n
-    has_right = (right < n) & (s_code[np.clip(right, 0, max(n - 1, 0))] == o_code) if n else right < 0
-    li, ri = np.clip(left, 0, max(n - 1, 0)), np.clip(right, 0, max(n - 1, 0))
-    d_left = np.where(has_left, np.abs(od - (t[li] if n else 0.0)), np.inf)
-    d_right = np.where(has_right, np.abs((t[ri] if n else 0.0) - od), np.inf)
+    li = np.clip(right - 1, 0, len(t) - 1)
+    ri = np.clip(right, 0, len(t) - 1)
+    has_left = (right >= 1) & (s_code[li] == o_code)
+    has_right = (right < len(t)) & (s_code[ri] == o_code)
+    d_left = np.where(has_left, np.abs(od - t[li]), np.inf)
+    d_right = np.where(has_right, np.abs(t[ri] - od), np.inf)
     idx = np.where(d_left <= d_right, li, ri)  # the earlier record wins a tie
     ok = np.minimum(d_left, d_right) <= tolerance_days + 1e-9
     m = len(od)
     pairs = pd.DataFrame({
         "well": obs["well"].to_numpy()[ok], "quantity": obs["quantity"].to_numpy()[ok],
-        "days": od[ok], "sim_days": t[idx][ok] if n else od[ok],
-        "observed": obs["value"].to_numpy(float)[ok], "simulated": v[idx][ok] if n else od[ok],
+        "days": od[ok], "sim_days": t[idx][ok],
+        "observed": obs["value"].to_numpy(float)[ok], "simulated": v[idx][ok],
         "sigma": (obs["sigma"].to_numpy(float) if "sigma" in obs else np.full(m, np.nan))[ok],
         "flowing": (obs["flowing"].to_numpy(bool) if "flowing" in obs else np.ones(m, bool))[ok],
         "derived": (obs["derived"].to_numpy(bool) if "derived" in obs else np.zeros(m, bool))[ok],
