@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import logging
 import re
 import shutil
 import threading
@@ -25,6 +26,11 @@ PUNQ_HISTORY_END_DAYS = 2936.0
 PUNQ_WELLS = ("PRO-1", "PRO-4", "PRO-5", "PRO-11", "PRO-12", "PRO-15")
 TRUTH_VALUES = {"poro_mult": 1.0, "permx_mult": 1.0, "permy_mult": 1.0, "permz_mult": 1.0,
                 "skin": 5.0}
+
+# Prefect's ephemeral server logs "Stopping temporary server" at interpreter exit, after pytest
+# has closed the stream its console handler writes to; without this, logging prints a
+# "--- Logging error ---" traceback under the test summary (nothing failed).
+logging.raiseExceptions = False
 
 # The machine has 2 cores: never more than 2 simulations at once from this test session.
 MAX_PARALLEL_SIMULATIONS = 2
