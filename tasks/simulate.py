@@ -21,7 +21,8 @@ class TransientSimulationError(RuntimeError):
     """A failure worth retrying (timeout, killed): Prefect retries only this exception."""
 
 
-def _retry_transient(task, task_run, state) -> bool:
+def retry_transient(task, task_run, state) -> bool:
+    """Prefect retry condition: retry only a :class:`TransientSimulationError`."""
     try:
         state.result()
     except TransientSimulationError:
@@ -31,29 +32,36 @@ def _retry_transient(task, task_run, state) -> bool:
     return False
 
 
-def fresh_run_dir(run_root: Path, index: int) -> Path:
-    """``runs/000012`` or, when a previous attempt left it, ``runs/000012.2`` etc. (never reused)."""
-    base = run_root / f"{index:06d}"
-    candidate, attempt = base, 1
+def fresh_dir(path: Path) -> Path:
+    """``path`` or, when a previous attempt left it, ``path.2``, ``path.3``... (never reused)."""
+    candidate, attempt = Path(path), 1
     while candidate.exists():
         attempt += 1
-        candidate = base.with_name(f"{base.name}.{attempt}")
+        candidate = Path(path).with_name(f"{Path(path).name}.{attempt}")
     return candidate
 
 
-@task(name="simulate", cache_policy=NO_CACHE, retries=2, retry_delay_seconds=1,
-      retry_condition_fn=_retry_transient)
-def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, agent: str) -> dict:
-    """Evaluate ``job`` and journal the record; transient failures raise to be retried."""
+def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: Path):
+    """Evaluate ``values`` in ``run_dir`` (an :class:`~hmcore.evaluation.Evaluation`); a
+    transient failure (timeout, killed) raises while Prefect still has retries left.
+    Returns the evaluation and the attempt number."""
     from prefect.runtime import task_run
 
-    store = ArtifactStore(store_root)
-    run_dir = fresh_run_dir(Path(store_root) / campaign / "runs", job.index)
     simulator = make_simulator(case.simulator.backend, case.simulator.timeout_s)
-    ev = evaluate(case, job.values, run_dir, simulator)
+    ev = evaluate(case, values, run_dir, simulator)
     attempt = int(getattr(task_run, "run_count", 1) or 1)
     if ev.status.value == "FAIL" and ev.reason.split(":")[0] in TRANSIENT_REASONS and attempt <= 2:
         raise TransientSimulationError(ev.reason)
+    return ev, attempt
+
+
+@task(name="simulate", cache_policy=NO_CACHE, retries=2, retry_delay_seconds=1,
+      retry_condition_fn=retry_transient)
+def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, agent: str) -> dict:
+    """Evaluate ``job`` and journal the record; transient failures raise to be retried."""
+    store = ArtifactStore(store_root)
+    run_dir = fresh_dir(Path(store_root) / campaign / "runs" / f"{job.index:06d}")
+    ev, attempt = evaluate_or_raise_transient(case, job.values, run_dir)
     record = to_jsonable({"index": job.index, "lane": job.lane, "phase": job.phase,
                           "action": list(job.action), "seed": seed, "agent": agent,
                           "attempts": attempt, **ev.to_record()})
