@@ -159,7 +159,8 @@ def _progress_watcher(storage: Path, campaign_hint: str | None, budget: int, sto
                   TextColumn("best E {task.fields[best]}"), TimeElapsedColumn(), TextColumn("ETA"),
                   TimeRemainingColumn(), console=console, transient=False) as bar:
         task = bar.add_task("calls", total=budget, best="-")
-        while not stop.is_set():
+        while True:  # one last poll after ``stop``: the bar ends on the journal's final count
+            finished = stop.is_set()
             names = [campaign_hint] if campaign_hint else store.campaigns()
             rows = []
             for name in names:
@@ -168,6 +169,8 @@ def _progress_watcher(storage: Path, campaign_hint: str | None, budget: int, sto
             ok = [r["E"] for r in rows if r.get("status") == "COMPLETE" and r.get("E") is not None]
             bar.update(task, completed=min(len(rows), budget),
                        best=f"{min(ok):.5g}" if ok else "-")
+            if finished:
+                break
             stop.wait(1.0)
 
 
