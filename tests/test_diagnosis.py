@@ -405,6 +405,29 @@ def test_diagnosis_orchestration_on_a_linear_simulator(tmp_path, hidden):
         assert g["ssr_heldout_after"] < g["ssr_heldout_before"]
 
 
+def test_a_candidate_under_the_line_is_confirmed_by_its_recalibration(tmp_path):
+    """The score test is linear; a candidate it puts above the screen but under the line is
+    still recalibrated, and ranks above ``none`` when the recalibrated fit drops beyond noise.
+    (The line is raised out of reach here so that only the screen lets the effect through.)"""
+    from hmcore.diagnosis import DiagnosisSettings, diagnose
+    from hmcore.diagnosis.extensions import build_candidates
+    from hmcore.diagnosis.hidden import synthetic_deck_info
+
+    cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
+                                               ParameterSpace.reference(), {"skin": 4.0})}
+    case, sim, _ = _linear_case(tmp_path, cands["well_skin:PROD3"].parameter, 12.0)
+    settings = DiagnosisSettings(chi2_threshold=1e9, screen_threshold=8.0, plots=False)
+    doc = diagnose(case, sim.evaluate_batch, settings=settings)
+    assert doc["ranking"]["beyond_noise"] == []
+    assert "well_skin:PROD3" in doc["ranking"]["screened"]
+    assert doc["causes"][0]["id"] == "well_skin:PROD3"
+    assert doc["selected"]["id"] == "well_skin:PROD3"
+    below = [c["id"] for c in doc["causes"]]
+    screened_rejected = [k for k in doc["ranking"]["screened"][:4] if k != "well_skin:PROD3"
+                         and not doc["candidates_recalibrated"][k]["fit_beyond_noise"]]
+    assert all(below.index(k) > below.index("none") for k in screened_rejected)
+
+
 def test_budget_caps_the_simulator_calls_and_says_when_the_ranking_cannot_fit(tmp_path):
     from hmcore.diagnosis import DiagnosisSettings, diagnose
 

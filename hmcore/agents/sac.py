@@ -45,7 +45,7 @@ class SACProposer:
     def __init__(self, dim: int, seed: int, settings: SACSettings | None = None):
         import torch
         from stable_baselines3 import SAC
-        from stable_baselines3.common.logger import configure
+        from stable_baselines3.common.logger import Logger
 
         self.settings = settings or SACSettings()
         self.dim = dim
@@ -59,7 +59,7 @@ class SACProposer:
                          batch_size=s.batch_size, learning_starts=s.learning_starts, gamma=0.0,
                          ent_coef=s.ent_coef, policy_kwargs={"net_arch": list(s.net_arch)},
                          seed=seed, device="cpu", verbose=0)
-        self.model.set_logger(configure(None, []))
+        self.model.set_logger(Logger(folder=None, output_formats=[]))  # no SB3-* dir in /tmp
         self.lanes = LaneMemory(dim)
         self.n_told = 0
         self._costs: list[tuple[float, bool]] = []  # (E + P, scored) of each transition told
