@@ -1,4 +1,4 @@
-"""The ``hmflow`` command line: check, evaluate, run, report, diagnose.
+"""The ``hmflow`` command line: check, evaluate, run, report, diagnose, hide, reveal.
 
 ``check`` and ``evaluate`` use hmcore alone; ``run``, ``report`` and ``diagnose`` start the
 Prefect flows in ``flows/`` (an ephemeral Prefect server is used when none is configured).
@@ -306,6 +306,142 @@ def diagnose(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     except ValueError as exc:
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
+
+
+@app.command()
+def hide(out: Path = typer.Option(..., "--out", help="New directory for the case (must not "
+                                  "exist or be empty)"),
+         kind: Optional[str] = typer.Option(None, "--kind", help="Kind of the hidden effect, "
+                                            "drawn by --seed (omit: a control, nothing hidden)"),
+         seed: int = typer.Option(0, "--seed", help="Draws the effect, its strength and the "
+                                  "noise (and, for the synthetic case, the fields)"),
+         candidate: Optional[str] = typer.Option(None, "--candidate", help="Hide this library "
+                                                 "candidate instead of drawing one, e.g. "
+                                                 "'regional_permeability:PROD2'"),
+         value: Optional[float] = typer.Option(None, "--value", help="Its value (default: drawn "
+                                               "from the kind's realistic range)"),
+         deck: Optional[Path] = typer.Option(None, "--deck", help="Base deck (default: the "
+                                             "built-in synthetic reservoir of --seed)"),
+         set_: list[str] = typer.Option([], "--set", help="NAME=VALUE of the five global "
+                                        "parameters in the truth (with --deck; default "
+                                        "multipliers 1, the deck's skin)"),
+         history_end: Optional[float] = typer.Option(None, "--history-end", help="Days fitted "
+                                                     "(default: 75 % of the record)"),
+         record_end: Optional[float] = typer.Option(None, "--record-end", help="Last day of the "
+                                                    "measured record (default: the schedule's "
+                                                    "end; with --deck)"),
+         sigma: bool = typer.Option(False, "--sigma/--no-sigma", help="Write the noise sigma "
+                                    "into the CSV (default: no, the diagnosis estimates it)")
+         ) -> None:
+    """Write a case whose "measured" history hides one model extension the base model lacks
+    (the truth run + realistic correlated noise), to try `hmflow diagnose` on, then `hmflow
+    reveal` to see whether it found it. The effect is recorded in OUT/hidden_effect.json."""
+    from hmcore.deck_info import DeckInfo
+    from hmcore.diagnosis.extensions import KINDS, deck_skins
+    from hmcore.diagnosis.hidden import (chosen_effect, draw_effect, synthetic_deck_info,
+                                         write_hidden_deck_case, write_hidden_synthetic_case)
+    from hmcore.parameters import ParameterSpace
+
+    problems = []
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        problems.append(f"--out {out}: exists and is not an empty directory; nothing is "
+                        "overwritten, choose a new one")
+    if kind is not None and kind not in KINDS:
+        problems.append(f"--kind {kind!r}: unknown; one of {list(KINDS)}")
+    if candidate is not None and kind is not None and not candidate.startswith(kind + ":"):
+        problems.append(f"--candidate {candidate!r} is not of --kind {kind!r}")
+    if value is not None and candidate is None:
+        problems.append("--value needs --candidate (which parameter it is the value of)")
+    if deck is not None and not deck.is_file():
+        problems.append(f"--deck {deck}: no such file")
+    if deck is None and (set_ or record_end is not None):
+        problems.append("--set and --record-end apply to --deck cases (the synthetic case has "
+                        "its own known truth)")
+    if problems:
+        for p_ in problems:
+            err_console.print(f"[red]x[/] {p_}")
+        raise typer.Exit(2)
+    space = ParameterSpace.reference()
+    created = not out.exists()
+    try:
+        if deck is None:
+            from hmcore.synthetic import SYNTHETIC_TRUTH
+
+            truth = dict(SYNTHETIC_TRUTH)
+            info = synthetic_deck_info(seed, out / "base-deck")
+        else:
+            info = DeckInfo.inspect(deck.resolve())
+            skins = deck_skins(info)
+            skin = sum(skins.values()) / len(skins) if skins else 0.0
+            truth = {"poro_mult": 1.0, "permx_mult": 1.0, "permy_mult": 1.0, "permz_mult": 1.0,
+                     "skin": min(max(skin, -5.0), 15.0),
+                     **parse_sets(set_, space.names)}
+        effect = None
+        k = kind or (candidate.split(":", 1)[0] if candidate else None)
+        if candidate is not None and value is not None:
+            effect = chosen_effect(candidate, value, info, space, truth)
+        elif k is not None:
+            effect = draw_effect(k, seed, info, space, truth,
+                                 choices=[candidate] if candidate else None)
+        if deck is None:
+            case_toml, effect = write_hidden_synthetic_case(out, seed, effect=effect)
+            text = case_toml.read_text().replace('name = "synthetic"', f'name = "{out.name}"', 1)
+            case_toml.write_text(text)
+        else:
+            end = info.end_days if record_end is None else record_end
+            he = history_end if history_end is not None else round(0.75 * end)
+            case_toml, effect = write_hidden_deck_case(
+                out, deck, seed, truth=truth, effect=effect, history_end_days=he,
+                with_sigma=sigma, name=out.name, end_days=record_end)
+    except ValueError as exc:
+        if created:  # leave nothing half-written behind
+            import shutil
+
+            shutil.rmtree(out, ignore_errors=True)
+        err_console.print(f"[red]x[/] {exc}")
+        raise typer.Exit(2)
+    hidden_json = out / "hidden_effect.json"
+    what = "nothing (a control)" if effect is None else f"one {effect.kind} effect"
+    for line in (f"[green]Case written[/]: {case_toml}",
+                 f"  hidden: {what}; the details are in {hidden_json} (look after diagnosing)",
+                 f"  next:   hmflow diagnose --case {case_toml}",
+                 f"          hmflow reveal --hidden {hidden_json} --diagnosis <the "
+                 "diagnosis.json it prints>"):
+        console.print(line, soft_wrap=True, highlight=False)
+
+
+@app.command()
+def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json of a case "
+                                       "written by `hmflow hide`"),
+           diagnosis: Path = typer.Option(..., "--diagnosis", help="diagnosis.json written by "
+                                          "`hmflow diagnose`")) -> None:
+    """Compare a diagnosis with the effect hidden in its case: right kind and well / layer
+    ranked first, selected, held-back misfit improved. Exit 1 when it was not found."""
+    from hmcore.diagnosis.hidden import judge, load_hidden_effect
+
+    for label, path in (("--hidden", hidden), ("--diagnosis", diagnosis)):
+        if not path.is_file():
+            err_console.print(f"[red]x[/] {label} {path}: no such file")
+            raise typer.Exit(2)
+    effect = load_hidden_effect(hidden)
+    doc = json.loads(diagnosis.read_text())
+    j = judge(doc, effect)
+    if effect is None:
+        console.print("hidden: nothing (a control)")
+    else:
+        console.print(f"hidden: [bold]{effect.candidate.id}[/] = {effect.value:.4g} "
+                      f"({effect.candidate.description})")
+    first = doc["causes"][0]
+    console.print(f"ranked first: [bold]{first['id']}[/] - {first['description']}")
+    console.print(f"selected: {doc['selected']['id'] if doc['selected'] else 'none'}")
+    console.print(f"ranking: {', '.join(j['ranking'])}")
+    g = doc["gain"]
+    console.print(f"held-back E {_num(g['heldout_before'], 5)} -> {_num(g['heldout_after'], 5)}")
+    checks = ("ranked_first", "selected", "heldout_improved")
+    console.print("  ".join(f"{c}: {'[green]yes[/]' if j[c] else '[red]no[/]'}" for c in checks))
+    console.print("[bold green]FOUND[/]" if j["found"] else "[bold red]NOT FOUND[/]")
+    if not j["found"]:
+        raise typer.Exit(1)
 
 
 def main() -> None:  # pragma: no cover - console entry

@@ -131,17 +131,31 @@ def test_hidden_effect_is_found_in_punq_s3(tmp_path):
 
 
 def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, capsys):
-    """The Prefect flow (simulations as tasks, two at a time) end to end, and the CLI print."""
+    """A new user's path: `hmflow hide` writes the case, the Prefect diagnose flow
+    (simulations as tasks, two at a time) runs end to end with the CLI print, `hmflow reveal`
+    compares the diagnosis with the hidden effect."""
     _opm()
     from rich.console import Console
+    from typer.testing import CliRunner
 
     from flows.diagnose import STEPS, diagnose_command
-    from hmcore.diagnosis.hidden import write_hidden_synthetic_case
+    from hmcore.diagnosis.hidden import load_hidden_effect
+    from hmflow.cli import app
     from storage import ArtifactStore
 
     kind, seed = FLOW_CASE
     start = time.perf_counter()
-    case_toml, effect = write_hidden_synthetic_case(tmp_path / "case", seed, kind)
+    runner = CliRunner()
+    out = runner.invoke(app, ["hide", "--out", str(tmp_path / "case"), "--kind", kind,
+                              "--seed", str(seed)])
+    assert out.exit_code == 0, out.output
+    case_toml = tmp_path / "case" / "case.toml"
+    assert f"hmflow diagnose --case {case_toml}" in out.output
+    assert f"hmflow reveal --hidden {tmp_path / 'case' / 'hidden_effect.json'}" in out.output
+    effect = load_hidden_effect(tmp_path / "case" / "hidden_effect.json")
+    assert effect.kind == kind
+    refused = runner.invoke(app, ["hide", "--out", str(tmp_path / "case"), "--kind", kind])
+    assert refused.exit_code == 2 and "nothing is overwritten" in refused.output
     console = Console(width=160, record=True)
     result = diagnose_command(case=str(case_toml), storage=tmp_path / "store", workers=2,
                               campaign="hidden-skin", console=console)
@@ -160,6 +174,15 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
     text = console.export_text()
     assert "Ranked causes" in text and "well_skin" in text and "diagnosis.json" in text
     assert result["simulations"] == doc["cost"]["simulations"]
+    shown = runner.invoke(app, ["reveal", "--hidden", str(tmp_path / "case" / "hidden_effect.json"),
+                                "--diagnosis", result["diagnosis_path"]])
+    assert shown.exit_code == 0, shown.output
+    assert "FOUND" in shown.output and effect.candidate.id in shown.output
+    control = tmp_path / "control_effect.json"  # the same diagnosis judged as a control's
+    control.write_text(json.dumps({"effect": None, "truth": {}}))
+    wrong = runner.invoke(app, ["reveal", "--hidden", str(control),
+                                "--diagnosis", result["diagnosis_path"]])
+    assert wrong.exit_code == 1 and "NOT FOUND" in wrong.output
 
 
 # ============================================================================= slow sweep

@@ -70,16 +70,52 @@ class HiddenEffect:
                 "description": self.candidate.description}
 
 
+def chosen_effect(candidate_id: str, value: float, info: DeckInfo, space: ParameterSpace,
+                  values: dict[str, float]) -> HiddenEffect:
+    """The library candidate ``candidate_id`` (see :func:`build_candidates`) at ``value``.
+
+    Raises ValueError naming the known ids of the kind, or the bounds the value breaks."""
+    kind = candidate_id.split(":", 1)[0]
+    if kind not in KINDS:
+        raise ValueError(f"candidate id {candidate_id!r} must start with a kind of {list(KINDS)}"
+                         ", e.g. 'well_skin:PROD2'")
+    cands = build_candidates(info, space, values, (kind,))
+    c = next((c for c in cands if c.id == candidate_id), None)
+    if c is None:
+        raise ValueError(f"the deck {info.path} offers no candidate {candidate_id!r}; its "
+                         f"{kind} candidates are {[c.id for c in cands]}")
+    p = c.parameter
+    if not p.low <= value <= p.high:
+        raise ValueError(f"{candidate_id}: low <= value <= high must hold, got value={value:g}, "
+                         f"low={p.low:g}, high={p.high:g}")
+    return HiddenEffect(c, float(value))
+
+
+def load_hidden_effect(path: Path) -> HiddenEffect | None:
+    """The effect a ``hidden_effect.json`` (written by the ``write_hidden_*`` functions)
+    describes; None for a control."""
+    doc = json.loads(Path(path).read_text())
+    e = doc.get("effect") if isinstance(doc, dict) and "truth" in doc else doc
+    if e is None:
+        return None
+    c = Candidate(id=e["id"], kind=e["kind"], parameter=Parameter.model_validate(e["parameter"]),
+                  wells=tuple(e.get("wells", ())), layers=tuple(e.get("layers", ())),
+                  description=e.get("description", ""))
+    return HiddenEffect(c, float(e["value"]))
+
+
 def draw_effect(kind: str, seed: int, info: DeckInfo, space: ParameterSpace,
                 values: dict[str, float], choices: list[str] | None = None) -> HiddenEffect:
     """A random candidate of ``kind`` (optionally among ids ``choices``) and strength."""
     if kind not in KINDS:
         raise ValueError(f"unknown kind {kind!r}")
     rng = np.random.default_rng([seed, KINDS.index(kind)])
-    cands = [c for c in build_candidates(info, space, values, (kind,))
-             if choices is None or c.id in choices]
+    every = build_candidates(info, space, values, (kind,))
+    cands = [c for c in every if choices is None or c.id in choices]
     if not cands:
-        raise ValueError(f"the deck offers no {kind} candidate")
+        raise ValueError(f"the deck {info.path} offers no {kind} candidate"
+                         + (f" among {choices}; its {kind} candidates are "
+                            f"{[c.id for c in every]}" if choices is not None else ""))
     c = cands[int(rng.integers(len(cands)))]
     spec = next((v for k, v in STRENGTH_OVERRIDES.items() if c.id.startswith(k)), STRENGTH[kind])
     (dlo, dhi), (ulo, uhi), p_down = spec
@@ -124,8 +160,10 @@ def write_hidden_synthetic_case(dest: Path, seed: int, kind: str | None = None,
         truth_space = ParameterSpace(parameters=space.parameters + (effect.parameter,))
         case = write_synthetic_case(dest, seed, truth={effect.parameter.name: effect.value},
                                     truth_space=truth_space)
+    truth = {**SYNTHETIC_TRUTH, **({effect.parameter.name: effect.value} if effect else {})}
     (Path(dest) / "hidden_effect.json").write_text(
-        json.dumps(effect.to_dict() if effect else None, indent=2) + "\n")
+        json.dumps({"effect": effect.to_dict() if effect else None, "truth": truth},
+                   indent=2) + "\n")
     return case, effect
 
 
