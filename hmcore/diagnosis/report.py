@@ -108,6 +108,8 @@ def plot_wells(obs: ObservationSet, base: pd.DataFrame, extended: pd.DataFrame |
                 if q != "WBHP":  # GOR and water cut are not defined while the well is shut
                     oil = resp[(resp.well == well) & (resp.quantity == "WOPR")]
                     s = s[s.days.isin(oil.days[oil.value > 0])]
+                else:  # a summary reports BHP 0 before the well exists: not a pressure
+                    s = s[s.value > 0]
                 ax.plot(s.days, s.value, style, lw=1.4, label=name)
             if obs.history_end_days is not None:
                 ax.axvline(obs.history_end_days, color="gray", ls="--", lw=1)
