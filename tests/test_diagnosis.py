@@ -428,6 +428,22 @@ def test_a_candidate_under_the_line_is_confirmed_by_its_recalibration(tmp_path):
     assert all(below.index(k) > below.index("none") for k in screened_rejected)
 
 
+@pytest.mark.parametrize("before,after,e_before,e_after,n,ok,quiet", [
+    (813.0, 589.0, 0.010, 0.008, 400, True, False),   # a signal in the held-back data, explained
+    (813.0, 851.0, 0.010, 0.008, 400, False, False),  # E better but the SSR worse: rejected
+    (813.0, 809.0, 0.010, 0.008, 400, False, False),  # not beyond noise
+    # synthetic layer_permeability seed 11: the held-back history was within noise already
+    (226.7, 232.4, 0.004806, 0.004439, 352, True, True),
+    (226.7, 240.0, 0.004806, 0.004439, 352, False, True),  # spoils it beyond noise
+    (226.7, 220.0, 0.004806, 0.004900, 352, False, True),  # E worse
+    (226.7, 220.0, 0.004806, 0.004000, 0, False, False),   # nothing held back
+])
+def test_held_back_confirmation_rule(before, after, e_before, e_after, n, ok, quiet):
+    from hmcore.diagnosis.diagnose import DiagnosisSettings, heldout_confirms
+
+    assert heldout_confirms(before, after, e_before, e_after, n, DiagnosisSettings()) == (ok, quiet)
+
+
 def test_budget_caps_the_simulator_calls_and_says_when_the_ranking_cannot_fit(tmp_path):
     from hmcore.diagnosis import DiagnosisSettings, diagnose
 

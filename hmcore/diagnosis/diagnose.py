@@ -72,7 +72,12 @@ class DiagnosisSettings:
     fit_threshold: float = 15.0
     """A confirmed extension must lower the fitted SSR by more than this."""
     heldout_threshold: float = 6.0
-    """... and the held-back SSR by more than this (and the held-back E must drop)."""
+    """... and the held-back SSR by more than this (and the held-back E must drop). When the
+    calibrated model already fits the held-back history within noise (its whitened SSR under
+    the chi-square mean + ``quiet_sd`` standard deviations), the held-back data carry nothing
+    to confirm: the extension must then lower the held-back E and not raise the held-back SSR
+    by more than this."""
+    quiet_sd: float = 3.0
     tie_band: float = 10.0
     """Recalibrated candidates whose fitted SSR is within this of the best fit the fitted
     history cannot tell apart: the held-back history orders them."""
@@ -525,8 +530,8 @@ class Diagnosis:
             d_ho = base_sc["ssr_heldout"] - sc["ssr_heldout"]
             e_ho_b, e_ho_a = base_sc["E_heldout"], sc["E_heldout"]
             fit_ok = d_fit > s.fit_threshold
-            ho_ok = (self.obs.n_heldout > 0 and d_ho > s.heldout_threshold
-                     and math.isfinite(e_ho_a) and e_ho_a < e_ho_b)
+            ho_ok, quiet = heldout_confirms(base_sc["ssr_heldout"], sc["ssr_heldout"], e_ho_b,
+                                            e_ho_a, self.obs.n_heldout, s)
             self.confirmed_runs[cid] = run
             self.confirmed[cid] = {
                 "id": cid, "values": run.values, "value": run.values[by_id[cid].name],
@@ -537,6 +542,7 @@ class Diagnosis:
                 "fit_before": base_sc["E"], "fit_after": sc["E"],
                 "heldout_before": e_ho_b, "heldout_after": e_ho_a,
                 "fit_beyond_noise": bool(fit_ok), "heldout_beyond_noise": bool(ho_ok),
+                "heldout_within_noise_before": bool(quiet),
                 "per_well_response_after": sc["per_well_response"],
                 "per_well_response_heldout_after": _per_well_heldout(self.case, run.responses),
                 "history": history}
@@ -567,7 +573,8 @@ class Diagnosis:
                         k: conf[k] for k in ("value", "delta_ssr_fit", "delta_ssr_heldout",
                                              "fit_before", "fit_after", "heldout_before",
                                              "heldout_after", "fit_beyond_noise",
-                                             "heldout_beyond_noise", "runs")}}
+                                             "heldout_beyond_noise",
+                                             "heldout_within_noise_before", "runs")}}
 
         confirmed_ok = self._order_confirmed(
             [k for k, v in self.confirmed.items() if v["fit_beyond_noise"]])
@@ -602,6 +609,12 @@ class Diagnosis:
             verdict = (f"accepted {selected}: {by_id[selected].description}; fitted E "
                        f"{conf['fit_before']:.4g} -> {conf['fit_after']:.4g}, held-back E "
                        f"{conf['heldout_before']:.4g} -> {conf['heldout_after']:.4g}")
+            if conf["delta_ssr_heldout"] <= s.heldout_threshold:
+                verdict += (f" (the calibrated model already fitted the held-back history "
+                            f"within noise, whitened SSR {conf['ssr_heldout_before']:.0f} over "
+                            f"{self.obs.n_heldout} points: it cannot confirm more than that the "
+                            f"extension does not spoil it, SSR change "
+                            f"{-conf['delta_ssr_heldout']:+.1f})")
         elif confirmed_ok:
             k = confirmed_ok[0]
             conf = self.confirmed[k]
@@ -695,6 +708,24 @@ class Diagnosis:
             files = {"diagnosis": out_dir / "diagnosis.json", "report": out_dir / "report.md",
                      "plots": plots}
         return files
+
+
+def heldout_confirms(ssr_before: float, ssr_after: float, e_before: float, e_after: float,
+                     n_heldout: int, s: DiagnosisSettings) -> tuple[bool, bool]:
+    """Does the held-back history confirm an extension? Returns (confirmed, quiet).
+
+    ``ssr_*``: whitened SSR of the held-back points (``n_heldout`` of them) before / after the
+    extension; ``e_*``: held-back misfit E. Confirmed: E drops and the SSR drops by more than
+    ``s.heldout_threshold``; or, when the calibrated model already fits the held-back points
+    within noise (``quiet``: SSR at most the chi-square mean + ``s.quiet_sd`` standard
+    deviations, so they hold no signal to explain), E drops and the SSR does not rise by more
+    than ``s.heldout_threshold``."""
+    if n_heldout <= 0 or not (math.isfinite(e_after) and math.isfinite(ssr_after)):
+        return False, False
+    quiet = ssr_before <= n_heldout + s.quiet_sd * math.sqrt(2.0 * n_heldout)
+    d = ssr_before - ssr_after
+    ok = e_after < e_before and (d > s.heldout_threshold or (quiet and d > -s.heldout_threshold))
+    return bool(ok), bool(quiet)
 
 
 @dataclass

@@ -279,7 +279,8 @@ def judge(doc: dict, effect: HiddenEffect | None) -> dict:
     ``ranked_first``: the first cause has the hidden kind and, where the kind names one, the
     same well (well skin, regional permeability), layer (layer and vertical permeability) or
     candidate (fault plane, aquifer item, relperm table); ``selected``: the same candidate was
-    accepted; ``heldout_improved``: the held-back E and whitened SSR went down. For the control
+    accepted; ``heldout_improved``: the held-back misfit E (the issue's measure of the gain)
+    went down. For the control
     all three mean "reported none". ``found`` = all three.
     """
     first = doc["causes"][0]
@@ -299,8 +300,7 @@ def judge(doc: dict, effect: HiddenEffect | None) -> dict:
         same = same and first["id"] == h.id
     sel = doc["selected"] is not None and doc["selected"]["id"] == h.id
     held = (g["heldout_after"] is not None and g["heldout_before"] is not None
-            and g["heldout_after"] < g["heldout_before"]
-            and g["ssr_heldout_after"] < g["ssr_heldout_before"])
+            and g["heldout_after"] < g["heldout_before"])
     return {"hidden": h.id, "value": effect.value, "ranked_first": bool(same),
             "selected": bool(sel), "heldout_improved": bool(held),
             "found": bool(same and sel and held), "ranking": top, "verdict": doc["verdict"],
