@@ -94,6 +94,9 @@ class DiagnosisSettings:
         fd_step=0.1, max_iter=3, max_evaluations=12, trials=1, ftol=0.005))
     """The best recalibrated candidates continue from a fresh finite-difference Jacobian."""
     refine_top: int = 2
+    line_search: tuple[float, ...] = (0.5, 1.0, 1.5)
+    """Multiples of the score test's linear step tried along each leading candidate's axis
+    (globals held) before its recalibration; the best point starts it."""
     global_fd_step: float = 0.1
     reuse_jacobian_within: float = 0.15
     """Reuse the calibration's last finite-difference Jacobian of the globals for the ranking
@@ -215,6 +218,7 @@ class Diagnosis:
         self.confirmed: dict[str, dict] = {}
         self.confirmed_runs: dict[str, Run] = {}
         self.recalibration: dict = {}
+        self.line_search: dict[str, list[dict]] = {}
         self.document: dict = {}
 
     # ------------------------------------------------------------------ simulation
@@ -396,6 +400,7 @@ class Diagnosis:
         # globals held at a bound they press against cannot take over a candidate's step
         g = self.J_global.T @ r0
         held = ((self.u_base >= 1 - 1e-6) & (g < 0)) | ((self.u_base <= -1 + 1e-6) & (g > 0))
+        self.held_globals = held
         Q = projector_basis(self.J_global[:, ~held])
         rows = []
         for (kind, c), run in zip(tags, runs):
@@ -464,6 +469,7 @@ class Diagnosis:
         s = self.settings
         by_id = {c.id: c for c in self.candidates}
         ids = [m["id"] for m in self.extension.get("models", [])]
+        starts = self._line_search(ids)
         lm_settings = s.recalibration
         if s.budget is not None and ids:
             per = (s.budget - self.n_runs) // len(ids)
@@ -474,10 +480,9 @@ class Diagnosis:
             c = by_id[cid]
             space = extended_space(self.case.space, [c])
             co = Coordinates(space.parameters)
-            u_c0 = Coordinates([c.parameter]).to_u({c.name: c.neutral})
-            u0 = np.concatenate([self.u_base, u_c0])
+            u0, run0 = starts[cid]
             J0 = np.column_stack([self.J_global, self.sensitivity[cid]])
-            start = _StartPoint(u0, self.base)
+            start = _StartPoint(u0, run0)
             lm = LevenbergMarquardt(u0, lm_settings, start=start.point(), jacobian=J0,
                                     label=cid)
             minimisers.append(lm)
@@ -534,6 +539,8 @@ class Diagnosis:
                                             e_ho_a, self.obs.n_heldout, s)
             self.confirmed_runs[cid] = run
             self.confirmed[cid] = {
+                "start_value": starts[cid][1].values.get(by_id[cid].name, by_id[cid].neutral),
+                "line_search": self.line_search.get(cid, []),
                 "id": cid, "values": run.values, "value": run.values[by_id[cid].name],
                 "runs": n_eval, "iterations": iters, "stopped": reason, "refined": k in refined,
                 "ssr_fit_before": base_sc["ssr_fit"], "ssr_fit_after": sc["ssr_fit"],
@@ -554,6 +561,56 @@ class Diagnosis:
             "fit": s.fit_threshold, "heldout": s.heldout_threshold}}
         self.timings["recalibrate"] = time.perf_counter() - t0
         return self.recalibration
+
+    def _line_search(self, ids: list[str]) -> dict[str, tuple[np.ndarray, Run]]:
+        """Start points of the recalibrations (scaled coordinates: globals + the candidate).
+
+        For each candidate, the best of the calibrated model, its probe run, and runs at 1/2,
+        1 and 3/2 of the score test's linear step along the joint direction the linear model
+        gives (the candidate moves, the free globals undo what they had absorbed of it:
+        ``-pinv(J_globals) j_candidate`` per unit). A response that bends (an aquifer's
+        strength, a baffle, a layer that stops flowing) can put that step out of reach of a
+        warm-started LM whose first steps trust the linear model only near the start."""
+        s = self.settings
+        by_id = {c.id: c for c in self.candidates}
+        self.line_search = {}
+        starts: dict[str, tuple[np.ndarray, Run]] = {}
+        jobs, tags = [], []
+        free = ~getattr(self, "held_globals", np.zeros(self.coords.dim, bool))
+        for cid in ids:
+            c = by_id[cid]
+            cc = Coordinates([c.parameter])
+            u0 = float(cc.to_u({c.name: c.neutral})[0])
+            u_probe = float(cc.to_u({c.name: c.probe})[0])
+            base_u = np.concatenate([self.u_base, [u0]])
+            points = [(base_u, self.base),
+                      (np.concatenate([self.u_base, [u_probe]]), self.probe_runs.get(cid))]
+            starts[cid] = min(((u, r) for u, r in points if r is not None and r.ok),
+                              key=lambda ur: ur[1].ssr_fit)
+            direction = np.zeros(self.coords.dim + 1)
+            direction[-1] = 1.0
+            if free.any():
+                direction[:-1][free] = -np.linalg.lstsq(self.J_global[:, free],
+                                                        self.sensitivity[cid], rcond=None)[0]
+            step = self.scores[cid].step_u
+            co = Coordinates(extended_space(self.case.space, [c]).parameters)
+            for f in s.line_search:
+                u = np.clip(base_u + f * step * direction, -1.0, 1.0)
+                if all(np.max(np.abs(u - v)) > 1e-3 for v, _ in points):
+                    points.append((u, None))
+                    jobs.append(co.to_values(u))
+                    tags.append((cid, u))
+        left = None if s.budget is None else s.budget - self.n_runs
+        if not jobs or (left is not None and left < 2 * len(jobs) + len(ids) * self.coords.dim):
+            return starts
+        for (cid, u), run in zip(tags, self._run(self.union_case, jobs, "line-search")):
+            c = by_id[cid]
+            self.line_search.setdefault(cid, []).append(
+                {"value": run.values[c.name], "ssr_fit": run.ssr_fit,
+                 "globals": {n: run.values[n] for n in self.coords.names}})
+            if run.ok and run.ssr_fit < starts[cid][1].ssr_fit:
+                starts[cid] = (u, run)
+        return starts
 
     # ------------------------------------------------------------------ decision + document
     def decide(self) -> dict:
