@@ -297,8 +297,10 @@ class LinearSimulator:
     from the neutral value (in scaled coordinates) to smooth base responses of four wells, so
     the diagnosis's job is exact linear algebra plus noise."""
 
-    def __init__(self, hidden: Parameter | None = None, hidden_value: float = 1.0, seed: int = 0):
+    def __init__(self, hidden: Parameter | None = None, hidden_value: float = 1.0, seed: int = 0,
+                 hidden_from: float | None = None):
         self.hidden, self.hidden_value = hidden, hidden_value
+        self.hidden_from = hidden_from  # the hidden parameter acts only after this day
         self.seed = seed
         self.days = np.arange(1, 61) * 30.0
         self.wells = ("PROD1", "PROD2", "PROD3", "PROD4")
@@ -329,7 +331,11 @@ class LinearSimulator:
             params.append(self.hidden)
             values = {**values, self.hidden.name: self.hidden_value}
         for p in params:
-            total += self.signature(p.name) * self.change(p, values[p.name], values)
+            sig = self.signature(p.name)
+            if self.hidden_from is not None and self.hidden is not None \
+                    and p.name == self.hidden.name:
+                sig = sig * np.tile(self.days > self.hidden_from, sig.size // self.days.size)
+            total += sig * self.change(p, values[p.name], values)
         frames = []
         n = self.days.size
         for k, w in enumerate(self.wells):
@@ -349,7 +355,7 @@ class LinearSimulator:
                                 sim_time_s=0.0, reason="") for v in values_list]
 
 
-def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0):
+def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0, hidden_from=None):
     pytest.importorskip("opm.io")
     from hmcore.case import load_case
     from hmcore.diagnosis.hidden import noisy_history
@@ -357,7 +363,7 @@ def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0):
 
     field_rng, _ = np.random.default_rng(0).spawn(2)
     (tmp_path / DECK_NAME).write_text(render_deck(make_fields(field_rng), 0))
-    sim = LinearSimulator(hidden, hidden_value, seed)
+    sim = LinearSimulator(hidden, hidden_value, seed, hidden_from)
     case0 = SimpleNamespace(space=ParameterSpace.reference())
     truth = {"poro_mult": 1.05, "permx_mult": 1.5, "permy_mult": 0.7, "permz_mult": 0.6,
              "skin": 4.0}
@@ -442,6 +448,28 @@ def test_held_back_confirmation_rule(before, after, e_before, e_after, n, ok, qu
     from hmcore.diagnosis.diagnose import DiagnosisSettings, heldout_confirms
 
     assert heldout_confirms(before, after, e_before, e_after, n, DiagnosisSettings()) == (ok, quiet)
+
+
+def test_an_effect_only_the_held_back_history_shows_is_reported_not_named(tmp_path):
+    """Nothing in the fitted history points to a cause (the effect starts after it): the
+    ranking reports `none`, and the verdict warns that the held-back history is not fitted
+    within noise (PUNQ-S3's hidden fault / relperm sweep cases behave like this)."""
+    from hmcore.diagnosis import DiagnosisSettings, diagnose
+    from hmcore.diagnosis.extensions import build_candidates
+    from hmcore.diagnosis.hidden import synthetic_deck_info
+
+    cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
+                                               ParameterSpace.reference(), {"skin": 4.0})}
+    case, sim, _ = _linear_case(tmp_path, cands["well_skin:PROD3"].parameter, 30.0,
+                                hidden_from=1350.0)
+    doc = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(plots=False))
+    assert doc["causes"][0]["kind"] == "none" and doc["selected"] is None
+    assert not doc["heldout_within_noise"], (doc["gain"], doc["verdict"])
+    assert "does NOT fit the held-back history within noise" in doc["verdict"]
+    (tmp_path / "c").mkdir()
+    case_c, sim_c, _ = _linear_case(tmp_path / "c")
+    control = diagnose(case_c, sim_c.evaluate_batch, settings=DiagnosisSettings(plots=False))
+    assert control["heldout_within_noise"] and "NOT" not in control["verdict"]
 
 
 def test_budget_caps_the_simulator_calls_and_says_when_the_ranking_cannot_fit(tmp_path):

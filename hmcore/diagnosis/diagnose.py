@@ -691,6 +691,15 @@ class Diagnosis:
             verdict = ("no candidate explains more of the residual than noise would: the "
                        "calibrated model is consistent with the data within the noise level")
         base_sc = self._scores(self.base)
+        n_ho = self.obs.n_heldout
+        heldout_quiet = n_ho == 0 or base_sc["ssr_heldout"] <= heldout_noise_line(n_ho, s)
+        if selected is None and not heldout_quiet:
+            verdict += (f". But the calibrated model does NOT fit the held-back history within "
+                        f"noise (whitened SSR {base_sc['ssr_heldout']:.0f} over {n_ho} points, "
+                        f"noise up to {heldout_noise_line(n_ho, s):.0f}): something acts after "
+                        f"day {self.obs.history_end_days:g} that the fitted history does not "
+                        "show (a barrier or aquifer reached later, water or gas arriving); fit "
+                        "a longer history to find it")
         after = self.confirmed.get(selected) if selected else None
         gain = {"fit_before": base_sc["E"], "fit_after": after["fit_after"] if after else base_sc["E"],
                 "heldout_before": base_sc["E_heldout"],
@@ -716,6 +725,7 @@ class Diagnosis:
             "selected": None if selected is None else {
                 **cause(selected, "selected"), "values": self.confirmed[selected]["values"]},
             "verdict": verdict,
+            "heldout_within_noise": bool(heldout_quiet),
             "gain": gain,
             "per_well_response": {"extension": shown, "rows": per_well},
             "candidates_recalibrated": self.confirmed,
@@ -767,6 +777,12 @@ class Diagnosis:
         return files
 
 
+def heldout_noise_line(n_heldout: int, s: DiagnosisSettings) -> float:
+    """Largest held-back whitened SSR still consistent with noise: the chi-square mean
+    + ``s.quiet_sd`` standard deviations."""
+    return n_heldout + s.quiet_sd * math.sqrt(2.0 * n_heldout)
+
+
 def heldout_confirms(ssr_before: float, ssr_after: float, e_before: float, e_after: float,
                      n_heldout: int, s: DiagnosisSettings) -> tuple[bool, bool]:
     """Does the held-back history confirm an extension? Returns (confirmed, quiet).
@@ -779,7 +795,7 @@ def heldout_confirms(ssr_before: float, ssr_after: float, e_before: float, e_aft
     than ``s.heldout_threshold``."""
     if n_heldout <= 0 or not (math.isfinite(e_after) and math.isfinite(ssr_after)):
         return False, False
-    quiet = ssr_before <= n_heldout + s.quiet_sd * math.sqrt(2.0 * n_heldout)
+    quiet = ssr_before <= heldout_noise_line(n_heldout, s)
     d = ssr_before - ssr_after
     ok = e_after < e_before and (d > s.heldout_threshold or (quiet and d > -s.heldout_threshold))
     return bool(ok), bool(quiet)
