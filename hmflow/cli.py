@@ -384,7 +384,8 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
             effect = draw_effect(k, seed, info, space, truth,
                                  choices=[candidate] if candidate else None)
         if deck is None:
-            case_toml, effect = write_hidden_synthetic_case(out, seed, effect=effect)
+            case_toml, effect = write_hidden_synthetic_case(out, seed, effect=effect,
+                                                            history_end_days=history_end)
             text = case_toml.read_text().replace('name = "synthetic"', f'name = "{out.name}"', 1)
             case_toml.write_text(text)
         else:

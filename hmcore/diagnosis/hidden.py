@@ -143,7 +143,8 @@ def synthetic_deck_info(seed: int, directory: Path | None = None) -> DeckInfo:
 
 
 def write_hidden_synthetic_case(dest: Path, seed: int, kind: str | None = None,
-                                effect: HiddenEffect | None = None
+                                effect: HiddenEffect | None = None,
+                                history_end_days: float | None = None
                                 ) -> tuple[Path, HiddenEffect | None]:
     """The synthetic case of ``seed`` whose truth hides ``effect`` (or one drawn of ``kind``;
     neither: the control, nothing hidden). Returns (case.toml, effect); the effect is also
@@ -155,11 +156,11 @@ def write_hidden_synthetic_case(dest: Path, seed: int, kind: str | None = None,
         info = synthetic_deck_info(seed, Path(dest) / "base-deck")
         effect = draw_effect(kind, seed, info, space, SYNTHETIC_TRUTH)
     if effect is None:
-        case = write_synthetic_case(dest, seed)
+        case = write_synthetic_case(dest, seed, history_end_days=history_end_days)
     else:
         truth_space = ParameterSpace(parameters=space.parameters + (effect.parameter,))
         case = write_synthetic_case(dest, seed, truth={effect.parameter.name: effect.value},
-                                    truth_space=truth_space)
+                                    truth_space=truth_space, history_end_days=history_end_days)
     truth = {**SYNTHETIC_TRUTH, **({effect.parameter.name: effect.value} if effect else {})}
     (Path(dest) / "hidden_effect.json").write_text(
         json.dumps({"effect": effect.to_dict() if effect else None, "truth": truth},
