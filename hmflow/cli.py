@@ -337,7 +337,7 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
     (the truth run + realistic correlated noise), to try `hmflow diagnose` on, then `hmflow
     reveal` to see whether it found it. The effect is recorded in OUT/hidden_effect.json."""
     from hmcore.deck_info import DeckInfo
-    from hmcore.diagnosis.extensions import KINDS, deck_skins
+    from hmcore.diagnosis.extensions import KINDS, base_values
     from hmcore.diagnosis.hidden import (chosen_effect, draw_effect, synthetic_deck_info,
                                          write_hidden_deck_case, write_hidden_synthetic_case)
     from hmcore.parameters import ParameterSpace
@@ -371,11 +371,7 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
             info = synthetic_deck_info(seed, out / "base-deck")
         else:
             info = DeckInfo.inspect(deck.resolve())
-            skins = deck_skins(info)
-            skin = sum(skins.values()) / len(skins) if skins else 0.0
-            truth = {"poro_mult": 1.0, "permx_mult": 1.0, "permy_mult": 1.0, "permz_mult": 1.0,
-                     "skin": min(max(skin, -5.0), 15.0),
-                     **parse_sets(set_, space.names)}
+            truth = {**base_values(info, space), **parse_sets(set_, space.names)}
         effect = None
         k = kind or (candidate.split(":", 1)[0] if candidate else None)
         if candidate is not None and value is not None:

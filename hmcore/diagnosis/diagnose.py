@@ -40,7 +40,7 @@ import pandas as pd
 
 from hmcore.case import Case
 from hmcore.diagnosis.attribution import Score, projector_basis, score_test
-from hmcore.diagnosis.extensions import (KINDS, Candidate, build_candidates, deck_skins,
+from hmcore.diagnosis.extensions import (KINDS, Candidate, base_values, build_candidates,
                                          extended_space)
 from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings,
                                           run_lockstep)
@@ -95,8 +95,9 @@ class DiagnosisSettings:
     """The best recalibrated candidates continue from a fresh finite-difference Jacobian."""
     refine_top: int = 2
     line_search: tuple[float, ...] = (0.5, 1.0, 1.5)
-    """Multiples of the score test's linear step tried along each leading candidate's axis
-    (globals held) before its recalibration; the best point starts it."""
+    """Multiples of the score test's linear step tried along each leading candidate's joint
+    direction (see :meth:`Diagnosis._line_search`) before its recalibration; the best point
+    starts it."""
     global_fd_step: float = 0.1
     reuse_jacobian_within: float = 0.15
     """Reuse the calibration's last finite-difference Jacobian of the globals for the ranking
@@ -219,6 +220,8 @@ class Diagnosis:
         self.confirmed_runs: dict[str, Run] = {}
         self.recalibration: dict = {}
         self.line_search: dict[str, list[dict]] = {}
+        self.held_globals: np.ndarray | None = None
+        """Globals pressed against a bound at the calibrated point (set by ``rank``)."""
         self.document: dict = {}
 
     # ------------------------------------------------------------------ simulation
@@ -254,17 +257,8 @@ class Diagnosis:
 
     # ------------------------------------------------------------------ 1 calibrate
     def default_start(self) -> dict[str, float]:
-        """The base model as given: multipliers 1, skins as in the deck (inside the bounds)."""
-        skins = deck_skins(self.case.info)
-        out = {}
-        for p in self.case.space.parameters:
-            if p.kind == "skin":
-                wells = p.wells or tuple(self.case.info.producers)
-                v = float(np.mean([skins.get(w, 0.0) for w in wells])) if wells else 0.0
-            else:
-                v = 1.0
-            out[p.name] = float(np.clip(v, p.low, p.high))
-        return out
+        """The base model as given (see :func:`hmcore.diagnosis.extensions.base_values`)."""
+        return base_values(self.case.info, self.case.space)
 
     def calibrate(self, calibrated: dict[str, float] | None = None,
                   initial: dict[str, float] | None = None) -> dict:
@@ -446,7 +440,7 @@ class Diagnosis:
     def extend(self) -> dict:
         """The extended models of the leading candidates (no simulation)."""
         by_id = {c.id: c for c in self.candidates}
-        top = self.ranking.get("screened", self.ranking["beyond_noise"])[: self.settings.confirm_top]
+        top = self.ranking["screened"][: self.settings.confirm_top]
         models = []
         for cid in top:
             c = by_id[cid]
@@ -576,7 +570,7 @@ class Diagnosis:
         self.line_search = {}
         starts: dict[str, tuple[np.ndarray, Run]] = {}
         jobs, tags = [], []
-        free = ~getattr(self, "held_globals", np.zeros(self.coords.dim, bool))
+        free = ~self.held_globals
         for cid in ids:
             c = by_id[cid]
             cc = Coordinates([c.parameter])

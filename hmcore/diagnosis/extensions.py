@@ -29,6 +29,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from hmcore.deck_info import DeckInfo
 from hmcore.eclipse_lexer import expand_repeats, include_target, records, split_blocks
 from hmcore.parameters import Parameter, ParameterSpace
@@ -113,6 +115,21 @@ def deck_skins(info: DeckInfo) -> dict[str, float]:
             s = 0.0
         skins.setdefault(well, []).append(s)
     return {w: sum(v) / len(v) for w, v in skins.items()}
+
+
+def base_values(info: DeckInfo, space: ParameterSpace) -> dict[str, float]:
+    """The base model as given, in ``space``: multipliers 1, each skin parameter the mean deck
+    skin (COMPDAT item 11) of its wells (default: the producers), clipped to its bounds."""
+    skins = deck_skins(info)
+    out = {}
+    for p in space.parameters:
+        if p.kind == "skin":
+            wells = p.wells or tuple(info.producers)
+            v = float(np.mean([skins.get(w, 0.0) for w in wells])) if wells else 0.0
+        else:
+            v = 1.0
+        out[p.name] = float(np.clip(v, p.low, p.high))
+    return out
 
 
 def current_skin(well: str, space: ParameterSpace, values: dict[str, float],
