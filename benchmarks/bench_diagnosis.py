@@ -59,6 +59,10 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int) -> dic
     out = judge(doc, effect) if case != "punq-real" else {
         "ranking": [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:5]
                     if c["chi2"] is not None], "verdict": doc["verdict"], "gain": doc["gain"]}
+    signal = (json.loads((tmp / "case" / "hidden_effect.json").read_text()).get("signal")
+              if case != "punq-real" else None) or {}
+    out.update({"signal_fit": signal.get("chi2_fit"), "signal_heldout": signal.get("chi2_heldout"),
+                "visible": signal.get("visible_in_fitted_history")})
     out.update({"case": case, "kind": kind or "control", "seed": seed, "wall_s": wall,
                 "simulations": doc["cost"]["simulations"], "out": str(tmp / "out"),
                 "selected": out.get("selected", doc["selected"] and doc["selected"]["id"])})
@@ -91,14 +95,15 @@ def main() -> None:
                    "error": f"{type(exc).__name__}: {exc}", "found": False}
         rows.append(row)
         print(json.dumps({k: row.get(k) for k in ("case", "kind", "seed", "hidden", "found",
-                                                   "ranked_first", "selected", "wall_s",
+                                                   "ranked_first", "selected", "signal_fit",
+                                                   "signal_heldout", "wall_s",
                                                    "simulations", "ranking", "error")}),
               flush=True)
         if args.json:
             args.json.write_text(json.dumps(rows, indent=2, default=str))
     if args.case != "punq-real":
-        print("\nkind | cases | ranked first | found (first + selected + held-back better) | "
-              "mean wall s | mean simulations")
+        print("\nkind | cases | visible in the fitted history | ranked first | found (first + "
+              "selected + held-back better) | mean wall s | mean simulations")
         for kind in kinds + (["control"] if args.controls else []):
             sub = [r for r in rows if r["kind"] == kind]
             if sub:
@@ -107,7 +112,9 @@ def main() -> None:
                 found = sum(bool(r.get("found")) for r in sub)
                 wall = sum(r.get("wall_s", 0) for r in sub) / n
                 sims = sum(r.get("simulations", 0) for r in sub) / n
-                print(f"{kind} | {n} | {first}/{n} | {found}/{n} | {wall:.0f} | {sims:.0f}")
+                seen = sum(bool(r.get("visible")) for r in sub)
+                print(f"{kind} | {n} | {seen}/{n} | {first}/{n} | {found}/{n} | {wall:.0f} | "
+                      f"{sims:.0f}")
     print(f"\noutputs under {root}")
 
 

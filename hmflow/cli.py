@@ -399,8 +399,10 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
         raise typer.Exit(2)
     hidden_json = out / "hidden_effect.json"
     what = "nothing (a control)" if effect is None else f"one {effect.kind} effect"
+    signal = json.loads(hidden_json.read_text()).get("signal")
     for line in (f"[green]Case written[/]: {case_toml}",
                  f"  hidden: {what}; the details are in {hidden_json} (look after diagnosing)",
+                 *([f"  signal: {_signal_text(signal)}"] if signal else []),
                  f"  next:   hmflow diagnose --case {case_toml}",
                  f"          hmflow reveal --hidden {hidden_json} --diagnosis <the "
                  "diagnosis.json it prints>"):
@@ -434,11 +436,28 @@ def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json
     console.print(f"ranking: {', '.join(j['ranking'])}")
     g = doc["gain"]
     console.print(f"held-back E {_num(g['heldout_before'], 5)} -> {_num(g['heldout_after'], 5)}")
+    signal = json.loads(hidden.read_text()).get("signal")
+    if signal:
+        console.print(f"signal of the hidden effect: {_signal_text(signal)}", highlight=False)
     checks = ("ranked_first", "selected", "heldout_improved")
     console.print("  ".join(f"{c}: {'[green]yes[/]' if j[c] else '[red]no[/]'}" for c in checks))
     console.print("[bold green]FOUND[/]" if j["found"] else "[bold red]NOT FOUND[/]")
     if not j["found"]:
         raise typer.Exit(1)
+
+
+def _signal_text(signal: dict) -> str:
+    """One line on how strongly a hidden effect shows in the data (see
+    :func:`hmcore.diagnosis.hidden.effect_signal`)."""
+    if "error" in signal:
+        return signal["error"]
+    text = (f"chi2 {signal['chi2_fit']:.0f} on the fitted history ({signal['n_fit']} points, "
+            f"days <= {signal['history_end_days']:g}), {signal['chi2_heldout']:.0f} on the "
+            f"held-back ({signal['n_heldout']} points), before the global parameters absorb any")
+    if not signal["visible_in_fitted_history"]:
+        text += ("; the fitted history hardly shows it, so no diagnosis can be expected to name "
+                 "it from there (fit a longer history)")
+    return text
 
 
 def main() -> None:  # pragma: no cover - console entry

@@ -503,3 +503,58 @@ def test_cli_printing_of_a_diagnosis(tmp_path):
     assert "Ranked causes" in text and "well_skin" in text and "PROD3" in text
     assert "selected: well_skin (well_skin:PROD3)" in text
     assert "fitted" in text and "held back" in text and "diagnosis.json" in text
+
+
+def _restart_settings(**kw):
+    """Settings that leave the warm-started recalibration where it starts (no line search, no
+    LM step, no refinement) and count every global as at its bound, so that the restart from
+    the deck's values alone can move the extended model."""
+    from hmcore.diagnosis import DiagnosisSettings
+
+    return DiagnosisSettings(**{"plots": False, "line_search": (), "refine_top": 0,
+                                "near_bound": 1.0, "recalibration": LMSettings(max_evaluations=0),
+                                **kw})
+
+
+def test_restart_from_the_deck_values_counts_when_only_the_candidate_makes_the_gain(tmp_path):
+    from hmcore.diagnosis import diagnose
+
+    hidden = Parameter(name="skin_PROD3", kind="skin", wells=("PROD3",), low=-5, high=30)
+    case, sim, _ = _linear_case(tmp_path, hidden, 12.0)
+    doc = diagnose(case, sim.evaluate_batch, settings=_restart_settings())
+    conf = doc["candidates_recalibrated"]["well_skin:PROD3"]
+    restart = conf["restart"]
+    assert restart["accepted"], restart
+    assert restart["ssr_fit"] < restart["ssr_fit_warm"]
+    assert restart["ssr_fit_neutral"] >= conf["ssr_fit_before"]  # the candidate made the gain
+    assert conf["ssr_fit_after"] == pytest.approx(restart["ssr_fit"])
+    assert doc["selected"]["id"] == "well_skin:PROD3"
+    assert any(h["note"].startswith("restart") for h in conf["history"])
+    from hmcore.diagnosis.report import markdown_report
+
+    row = next(ln for ln in markdown_report(doc).splitlines() if ln.startswith("| well_skin:PROD3"))
+    assert "accepted: SSR" in row
+    # restarts off (a negative margin: no global counts as at its bound)
+    doc = diagnose(case, sim.evaluate_batch, settings=_restart_settings(near_bound=-1.0))
+    assert doc["candidates_recalibrated"]["well_skin:PROD3"]["restart"] is None
+
+
+def test_restart_is_rejected_when_the_globals_alone_beat_the_calibration(tmp_path):
+    """A calibration short of its minimum (a given vector, not polished): the restart fits
+    better, but so do its globals with the candidate neutral - the gain is not the
+    candidate's, and the restart does not count."""
+    from hmcore.diagnosis import diagnose
+
+    hidden = Parameter(name="skin_PROD3", kind="skin", wells=("PROD3",), low=-5, high=30)
+    case, sim, truth = _linear_case(tmp_path, hidden, 12.0)
+    poor = {**truth, "permx_mult": 3.0, "poro_mult": 0.8}
+    doc = diagnose(case, sim.evaluate_batch, calibrated=poor,
+                   settings=_restart_settings(polish_given=False))
+    rejected = [c for c in doc["candidates_recalibrated"].values()
+                if c["restart"] and "ssr_fit_neutral" in c["restart"]]
+    assert rejected
+    for c in rejected:
+        assert not c["restart"]["accepted"]
+        assert c["restart"]["ssr_fit_neutral"] < c["ssr_fit_before"]
+        assert "the gain would be the globals'" in c["restart"]["reason"]
+        assert c["ssr_fit_after"] > c["restart"]["ssr_fit"]  # the restart's fit is not used

@@ -48,6 +48,8 @@ layer 3 first), aquifer_strength AQUCT 1 (aquifer 2 first, tied on the fit, bett
 fault j23 and krw exponent: the truth fits the history to day 2200 no better than the
 calibrated base (SSR 465 vs 472, 472 vs 466), only the held-back data show them - reported as
 `none` with the held-back warning."""
+PUNQ_LATE_FAULT = ("fault_transmissibility:j23", 0.0012)
+"""The PUNQ-S3 sweep's fault (seed 21): it shows only after day 2200."""
 SWEEP_SEEDS = (11, 12)
 PUNQ_HISTORY_END = 2200.0
 PUNQ_RECORD_END = 2936.0  # the measured record of PUNQ-S3: the first 8 years
@@ -74,6 +76,19 @@ def assert_found(doc: dict, effect) -> None:
     assert j["heldout_improved"], what
     g = doc["gain"]
     assert g["fit_after"] < g["fit_before"]
+
+
+def assert_found_where_visible(doc: dict, effect, case_dir: Path) -> None:
+    """:func:`assert_found` when the effect shows in the fitted history (its signal, measured by
+    `hide`, reaches the score test's line); otherwise the right answer is that nothing in the
+    fitted history names a cause while the held-back history is missed beyond noise."""
+    signal = json.loads((case_dir / "hidden_effect.json").read_text())["signal"]
+    if signal["visible_in_fitted_history"]:
+        assert_found(doc, effect)
+        return
+    what = f"invisible {effect.candidate.id} (signal {signal}); {doc['verdict']}"
+    assert doc["causes"][0]["kind"] == "none" and doc["selected"] is None, what
+    assert signal["chi2_heldout"] < 15 or not doc["heldout_within_noise"], what
 
 
 def diagnose_synthetic(tmp: Path, kind: str | None, seed: int):
@@ -167,6 +182,9 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
     assert f"hmflow reveal --hidden {tmp_path / 'case' / 'hidden_effect.json'}" in out.output
     effect = load_hidden_effect(tmp_path / "case" / "hidden_effect.json")
     assert effect.kind == kind
+    signal = json.loads((tmp_path / "case" / "hidden_effect.json").read_text())["signal"]
+    assert signal["chi2_fit"] > 15 and signal["visible_in_fitted_history"]
+    assert f"signal: chi2 {signal['chi2_fit']:.0f} on the fitted history" in out.output
     refused = runner.invoke(app, ["hide", "--out", str(tmp_path / "case"), "--kind", kind])
     assert refused.exit_code == 2 and "nothing is overwritten" in refused.output
     console = Console(width=160, record=True)
@@ -191,11 +209,47 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
                                 "--diagnosis", result["diagnosis_path"]])
     assert shown.exit_code == 0, shown.output
     assert "FOUND" in shown.output and effect.candidate.id in shown.output
+    assert "signal of the hidden effect: chi2" in shown.output
     control = tmp_path / "control_effect.json"  # the same diagnosis judged as a control's
     control.write_text(json.dumps({"effect": None, "truth": {}}))
     wrong = runner.invoke(app, ["reveal", "--hidden", str(control),
                                 "--diagnosis", result["diagnosis_path"]])
     assert wrong.exit_code == 1 and "NOT FOUND" in wrong.output
+
+
+def test_effect_signal_is_zero_for_a_neutral_effect_and_names_an_invisible_one(tmp_path):
+    """The signal of a hidden effect (truth with vs without it, whitened, real OPM runs): zero
+    when the effect sits at its neutral value (the run without it reproduces the truth run),
+    and on PUNQ-S3 a fault that acts only after the fitted history is reported as hardly
+    visible there, with `hmflow hide` saying so."""
+    _opm()
+    from typer.testing import CliRunner
+
+    from hmcore.diagnosis.hidden import effect_signal
+    from hmcore.synthetic import SYNTHETIC_TRUTH
+    from hmflow.cli import app
+
+    runner = CliRunner()
+    out = runner.invoke(app, ["hide", "--out", str(tmp_path / "neutral"), "--seed", "3",
+                              "--candidate", "well_skin:PROD2", "--value", "3"])
+    assert out.exit_code == 0, out.output
+    doc = json.loads((tmp_path / "neutral" / "hidden_effect.json").read_text())
+    assert doc["effect"]["value"] == SYNTHETIC_TRUTH["skin"]  # PROD2's skin as the others'
+    assert doc["signal"]["chi2_fit"] < 1e-6 and doc["signal"]["chi2_heldout"] < 1e-6
+    again = effect_signal(tmp_path / "neutral" / "case.toml", {**SYNTHETIC_TRUTH, "skin": 5.0})
+    assert again["chi2_fit"] > 15  # a different skin everywhere does show
+    if not (PUNQ / "PUNQS3.DATA").is_file():
+        pytest.skip(f"PUNQ-S3 data not found at {PUNQ}")
+    out = runner.invoke(app, ["hide", "--out", str(tmp_path / "punq"), "--deck",
+                              str(PUNQ / "PUNQS3.DATA"), "--candidate",
+                              PUNQ_LATE_FAULT[0], "--value", str(PUNQ_LATE_FAULT[1]),
+                              "--history-end", str(PUNQ_HISTORY_END), "--record-end",
+                              str(PUNQ_RECORD_END), "--seed", "21"])
+    assert out.exit_code == 0, out.output
+    signal = json.loads((tmp_path / "punq" / "hidden_effect.json").read_text())["signal"]
+    assert signal["chi2_fit"] < 15 < signal["chi2_heldout"], signal
+    assert not signal["visible_in_fitted_history"]
+    assert "the fitted history hardly shows it" in " ".join(out.output.split())
 
 
 # ============================================================================= slow sweep
@@ -207,7 +261,7 @@ SWEEP = [(k, s) for k in KINDS for s in SWEEP_SEEDS] + KNOWN_MISSES
 def test_sweep_synthetic(tmp_path, kind, seed):
     _opm()
     doc, effect = diagnose_synthetic(tmp_path, kind, seed)
-    assert_found(doc, effect)
+    assert_found_where_visible(doc, effect, tmp_path / "case")
 
 
 @pytest.mark.slow
@@ -215,7 +269,7 @@ def test_sweep_synthetic(tmp_path, kind, seed):
 def test_sweep_punq(tmp_path, kind):
     _opm()
     doc, effect = diagnose_punq(tmp_path, kind, 21)
-    assert_found(doc, effect)
+    assert_found_where_visible(doc, effect, tmp_path / "case")
 
 
 @pytest.mark.slow

@@ -162,9 +162,10 @@ def write_hidden_synthetic_case(dest: Path, seed: int, kind: str | None = None,
         case = write_synthetic_case(dest, seed, truth={effect.parameter.name: effect.value},
                                     truth_space=truth_space, history_end_days=history_end_days)
     truth = {**SYNTHETIC_TRUTH, **({effect.parameter.name: effect.value} if effect else {})}
+    signal = effect_signal(case, SYNTHETIC_TRUTH) if effect else None
     (Path(dest) / "hidden_effect.json").write_text(
-        json.dumps({"effect": effect.to_dict() if effect else None, "truth": truth},
-                   indent=2) + "\n")
+        json.dumps({"effect": effect.to_dict() if effect else None, "truth": truth,
+                    "signal": signal}, indent=2) + "\n")
     return case, effect
 
 
@@ -264,13 +265,51 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
     if not with_sigma:
         obs = obs.drop(columns=["sigma"])
     obs.to_csv(dest / "observed.csv", index=False, float_format="%.6g")
-    (dest / "hidden_effect.json").write_text(
-        json.dumps({"effect": effect.to_dict() if effect else None, "truth": values},
-                   indent=2) + "\n")
     case = dest / "case.toml"
     case.write_text(f'[case]\nname = "{name}"\ndeck = "{deck}"\nobserved = "observed.csv"\n'
                     f"history_end_days = {history_end_days:g}\n")
+    signal = effect_signal(case, truth, sim) if effect else None
+    (dest / "hidden_effect.json").write_text(
+        json.dumps({"effect": effect.to_dict() if effect else None, "truth": values,
+                    "signal": signal}, indent=2) + "\n")
     return case, effect
+
+
+SIGNAL_VISIBLE = 15.0
+"""Chi-square of a hidden effect's signal on the fitted history under which a diagnosis cannot
+be expected to name it (the score test's line, :class:`hmcore.diagnosis.DiagnosisSettings`)."""
+
+
+def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=None) -> dict:
+    """How strongly the hidden effect shows in the measured history of the case ``case_toml``.
+
+    The truth without the effect (``truth_globals``: the calibration parameters' true values,
+    one simulator run) against the truth with it (``truth_responses.csv`` beside the case),
+    standardised and whitened under the noise model the diagnosis starts from (sigma from the
+    CSV or estimated from the observed series, AR(1) in time): ``chi2_fit`` and
+    ``chi2_heldout`` are the sums of squares of that difference on the fitted and the held-back
+    history (``n_fit``, ``n_heldout`` points). They are an upper bound on what the data say
+    about the effect: the global parameters can absorb part of it. A ``chi2_fit`` under
+    :data:`SIGNAL_VISIBLE` means the fitted history hardly shows it."""
+    from hmcore.case import load_case
+    from hmcore.diagnosis.residuals import ObservationSet
+    from hmcore.evaluation import evaluate
+
+    case = load_case(case_toml)
+    folder = Path(case_toml).parent
+    truth = pd.read_csv(folder / "truth_responses.csv")
+    obs = ObservationSet.from_case(case)
+    with tempfile.TemporaryDirectory(prefix="effect-signal-", dir=folder) as tmp:
+        values = {n: float(truth_globals[n]) for n in case.space.names}
+        without = evaluate(case, values, Path(tmp) / "run", simulator)
+    if without.responses is None:
+        return {"error": f"the truth without the effect failed to simulate: {without.reason}"}
+    d = obs.standardized(without.responses) - obs.standardized(truth)
+    fit, held = obs.whiten(d, "fit"), obs.whiten(d, "heldout")
+    chi2_fit, chi2_held = float(fit @ fit), float(held @ held)
+    return {"chi2_fit": chi2_fit, "chi2_heldout": chi2_held, "n_fit": int(fit.size),
+            "n_heldout": int(held.size), "history_end_days": obs.history_end_days,
+            "visible_in_fitted_history": bool(chi2_fit >= SIGNAL_VISIBLE)}
 
 
 # ----------------------------------------------------------------------------- scoring a finding

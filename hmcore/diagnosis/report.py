@@ -46,6 +46,21 @@ def gain_table(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def recalibration_table(doc: dict) -> str:
+    """Each recalibrated candidate: its value, the fitted and held-back whitened SSR after, and
+    what the restart from the deck's values did."""
+    lines = ["| candidate | value | fitted SSR after | held-back SSR after | runs | restart from "
+             "the deck's values |", "|---|---|---|---|---|---|"]
+    for cid, c in doc.get("candidates_recalibrated", {}).items():
+        r = c.get("restart")
+        restart = "-" if not r else (f"{'accepted' if r['accepted'] else 'not used'}: SSR "
+                                     f"{_f(r['ssr_fit'], 6)} vs warm {_f(r['ssr_fit_warm'], 6)}"
+                                     f" ({r.get('reason', '')})")
+        lines.append(f"| {cid} | {_f(c['value'])} | {_f(c['ssr_fit_after'], 6)} | "
+                     f"{_f(c['ssr_heldout_after'], 6)} | {c['runs']} | {restart} |")
+    return "\n".join(lines)
+
+
 def well_table(doc: dict) -> str:
     pw = doc["per_well_response"]
     lines = [f"Extension shown: `{pw['extension'] or 'none'}`", "",
@@ -68,7 +83,10 @@ def markdown_report(doc: dict) -> str:
              "Selected extension: " + (f"**{sel['kind']}** ({sel['id']}) - {sel['description']}"
                                        if sel else "**none**"), "",
              "## Gain", "", gain_table(doc), "", "## Ranked causes", "",
-             ranking_table(doc), "", "## Misfit per well and response (E contributions)", "",
+             ranking_table(doc), "", "## Recalibrated candidates", "",
+             "Before: fitted SSR " + _f(doc["gain"]["ssr_fit_before"], 6) + ", held-back SSR "
+             + _f(doc["gain"]["ssr_heldout_before"], 6) + ".", "", recalibration_table(doc), "",
+             "## Misfit per well and response (E contributions)", "",
              well_table(doc), "", "## Residual findings beyond noise (calibrated model)", ""]
     flags = doc["residuals"].get("flags", [])
     lines += [f"- {f['text']}" for f in flags[:40]] or ["- none"]
