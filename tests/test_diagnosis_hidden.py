@@ -42,12 +42,15 @@ PUNQ_DEFAULT = ("regional_permeability", 2)
 """Missed on 2026-11-22 (before the line search; not rerun since): well_skin:PRO-4 ranks
 above the hidden regional box around PRO-4 (chi2 91 vs 48); recalibrated, the box fits better
 (SSR 400 vs 407) but its held-back misfit got worse. Runs in the slow sweep. The PUNQ-S3
-sweep (seed 21, every kind): found regional_permeability (PRO-12) and well_skin (PRO-4);
-missed layer_permeability:5 (well_skin:PRO-1 first), vertical_permeability:2 (the adjacent
-layer 3 first), aquifer_strength AQUCT 1 (aquifer 2 first, tied on the fit, better held back);
-fault j23 and krw exponent: the truth fits the history to day 2200 no better than the
-calibrated base (SSR 465 vs 472, 472 vs 466), only the held-back data show them - reported as
-`none` with the held-back warning."""
+sweep (seed 21, every kind) of 2026-11-22 found regional_permeability (PRO-12) and well_skin
+(PRO-4); on 2026-11-23, with the restart from the deck's values and up to 6 recalibrated
+candidates, also aquifer_strength AQUCT 1 x5.28 (was: aquifer 2 first; now value 4.80,
+held-back E 0.0117 -> 0.0033) and layer_permeability:5 x3.32 (was: well_skin:PRO-1 first, the
+layer 6th by score; now value 3.39, held-back E 0.0175 -> 0.0032). Still missed (not rerun):
+vertical_permeability:2 x0.01 (signal chi2 427 on the fitted history; the adjacent layer 3
+ranks first). Fault j23 (x0.0012) and the krw exponent (0.48) act after day 2200: their
+signals on the fitted history are chi2 1.4 and 7 (held back 36 and 104), so the sweep requires
+`none` and the held-back warning there (assert_found_where_visible)."""
 PUNQ_LATE_FAULT = ("fault_transmissibility:j23", 0.0012)
 """The PUNQ-S3 sweep's fault (seed 21): it shows only after day 2200."""
 SWEEP_SEEDS = (11, 12)
