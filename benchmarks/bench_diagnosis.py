@@ -62,6 +62,7 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int) -> dic
     signal = (json.loads((tmp / "case" / "hidden_effect.json").read_text()).get("signal")
               if case != "punq-real" else None) or {}
     out.update({"signal_fit": signal.get("chi2_fit"), "signal_heldout": signal.get("chi2_heldout"),
+                "signal_fit_after_globals": signal.get("chi2_fit_after_globals"),
                 "visible": signal.get("visible_in_fitted_history")})
     out.update({"case": case, "kind": kind or "control", "seed": seed, "wall_s": wall,
                 "simulations": doc["cost"]["simulations"], "out": str(tmp / "out"),
@@ -96,14 +97,16 @@ def main() -> None:
         rows.append(row)
         print(json.dumps({k: row.get(k) for k in ("case", "kind", "seed", "hidden", "found",
                                                    "ranked_first", "selected", "signal_fit",
-                                                   "signal_heldout", "wall_s",
+                                                   "signal_heldout", "signal_fit_after_globals",
+                                                   "visible", "wall_s",
                                                    "simulations", "ranking", "error")}),
               flush=True)
         if args.json:
             args.json.write_text(json.dumps(rows, indent=2, default=str))
     if args.case != "punq-real":
-        print("\nkind | cases | visible in the fitted history | ranked first | found (first + "
-              "selected + held-back better) | mean wall s | mean simulations")
+        print("\nkind | cases | visible in the fitted history (after the globals absorb) | "
+              "ranked first | found (first + selected + held-back better) | mean wall s | "
+              "mean simulations")
         for kind in kinds + (["control"] if args.controls else []):
             sub = [r for r in rows if r["kind"] == kind]
             if sub:

@@ -454,6 +454,10 @@ def _signal_text(signal: dict) -> str:
     text = (f"chi2 {signal['chi2_fit']:.0f} on the fitted history ({signal['n_fit']} points, "
             f"days <= {signal['history_end_days']:g}), {signal['chi2_heldout']:.0f} on the "
             f"held-back ({signal['n_heldout']} points), before the global parameters absorb any")
+    if "chi2_fit_after_globals" in signal:
+        text += (f"; {signal['chi2_fit_after_globals']:.0f} on the fitted history (held back "
+                 f"{signal['chi2_heldout_after_globals']:.0f}) once the global parameters "
+                 "absorb what they can")
     if not signal["visible_in_fitted_history"]:
         text += ("; the fitted history hardly shows it, so no diagnosis can be expected to name "
                  "it from there (fit a longer history)")

@@ -27,9 +27,14 @@ from hmcore.diagnosis.extensions import KINDS
 PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
 pytestmark = [pytest.mark.opm]
 
-DEFAULT_CASES = [("aquifer_strength", 3), ("layer_permeability", 4)]
+DEFAULT_CASES = [pytest.param("aquifer_strength", 3, id="aquifer_strength-3"),
+                 pytest.param("layer_permeability", 4, id="layer_permeability-4",
+                              marks=pytest.mark.slow)]
 """layer_permeability-4 (layer 2 x3.25) scores chi2 15.0, at the line: found since candidates
-above the screen (8) are recalibrated too (fitted SSR -17.6, held-back -62)."""
+above the screen (8) are recalibrated too (fitted SSR -17.6, held-back -62). Slow since
+2026-11-23: its globals end at their bounds, so it pays for the restart from the deck's values
+(the suite took 27 min with it, over CI's ~25 min target); the default run keeps the aquifer,
+the flow's well skin and the control."""
 KNOWN_MISSES: list[tuple[str, int]] = []
 """Sweep of 2026-11-22 (seeds 11, 12 of every kind + control 6): the misses are sweep cases
 already - aquifer_strength-11 (a Fetkovich aquifer's PI x0.05: even the truth fits the fitted
@@ -83,15 +88,22 @@ def assert_found(doc: dict, effect) -> None:
 
 def assert_found_where_visible(doc: dict, effect, case_dir: Path) -> None:
     """:func:`assert_found` when the effect shows in the fitted history (its signal, measured by
-    `hide`, reaches the score test's line); otherwise the right answer is that nothing in the
-    fitted history names a cause while the held-back history is missed beyond noise."""
+    `hide`, reaches the score test's line once the global parameters absorbed what they can);
+    otherwise the right answer is that nothing in the fitted history names a cause, and where
+    the held-back signal is strong enough to lift the held-back misfit beyond the noise line,
+    the verdict must say that the held-back history is missed."""
+    from hmcore.diagnosis.diagnose import DiagnosisSettings, heldout_noise_line
+
     signal = json.loads((case_dir / "hidden_effect.json").read_text())["signal"]
     if signal["visible_in_fitted_history"]:
         assert_found(doc, effect)
         return
     what = f"invisible {effect.candidate.id} (signal {signal}); {doc['verdict']}"
     assert doc["causes"][0]["kind"] == "none" and doc["selected"] is None, what
-    assert signal["chi2_heldout"] < 15 or not doc["heldout_within_noise"], what
+    held = signal.get("chi2_heldout_after_globals", signal["chi2_heldout"])
+    n = signal["n_heldout"]
+    assert held < heldout_noise_line(n, DiagnosisSettings()) - n or \
+        not doc["heldout_within_noise"], what
 
 
 def diagnose_synthetic(tmp: Path, kind: str | None, seed: int):
@@ -131,7 +143,7 @@ def diagnose_punq(tmp: Path, kind: str, seed: int):
 
 
 # ============================================================================= default run
-@pytest.mark.parametrize("kind,seed", DEFAULT_CASES, ids=[f"{k}-{s}" for k, s in DEFAULT_CASES])
+@pytest.mark.parametrize("kind,seed", DEFAULT_CASES)
 def test_hidden_effect_is_found_in_the_synthetic_case(tmp_path, kind, seed):
     _opm()
     doc, effect = diagnose_synthetic(tmp_path, kind, seed)
@@ -222,9 +234,10 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
 
 def test_effect_signal_is_zero_for_a_neutral_effect_and_names_an_invisible_one(tmp_path):
     """The signal of a hidden effect (truth with vs without it, whitened, real OPM runs): zero
-    when the effect sits at its neutral value (the run without it reproduces the truth run),
-    and on PUNQ-S3 a fault that acts only after the fitted history is reported as hardly
-    visible there, with `hmflow hide` saying so."""
+    when the effect sits at its neutral value (the run without it reproduces the truth run);
+    a different skin everywhere shows, but the global skin absorbs all of it; and on PUNQ-S3
+    a fault that acts only after the fitted history is reported as hardly visible there, with
+    `hmflow hide` saying so."""
     _opm()
     from typer.testing import CliRunner
 
@@ -240,7 +253,11 @@ def test_effect_signal_is_zero_for_a_neutral_effect_and_names_an_invisible_one(t
     assert doc["effect"]["value"] == SYNTHETIC_TRUTH["skin"]  # PROD2's skin as the others'
     assert doc["signal"]["chi2_fit"] < 1e-6 and doc["signal"]["chi2_heldout"] < 1e-6
     again = effect_signal(tmp_path / "neutral" / "case.toml", {**SYNTHETIC_TRUTH, "skin": 5.0})
-    assert again["chi2_fit"] > 15  # a different skin everywhere does show
+    assert again["chi2_fit"] > 15  # a different skin everywhere does show ...
+    # ... but it is what a global parameter represents: the globals absorb it all
+    assert again["chi2_fit_after_globals"] < 0.05 * again["chi2_fit"], again
+    assert again["globals_absorbing"]["skin"] < 4.5, again  # from 5 towards the truth's 3
+    assert not again["visible_in_fitted_history"]
     if not (PUNQ / "PUNQS3.DATA").is_file():
         pytest.skip(f"PUNQ-S3 data not found at {PUNQ}")
     out = runner.invoke(app, ["hide", "--out", str(tmp_path / "punq"), "--deck",

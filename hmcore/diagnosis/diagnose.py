@@ -15,7 +15,10 @@ artifacts; :func:`diagnose` runs them all):
 5. ``recalibrate``- the extended models recalibrated together (lockstep LM, Broyden Jacobian
    updates), restarted from the deck's values when the calibration left globals at their
    bounds; the gain on the fitted AND the held-back history; an extension is selected only
-   when its held-back misfit improves beyond noise;
+   when its held-back misfit improves beyond noise. The causes are ranked: recalibrated
+   candidates that lower the fitted misfit beyond noise, those the held-back history
+   confirms first (by fitted SSR; fits within ``tie_band`` ordered by held-back SSR), then
+   the rest of them, then ``none`` and what stays within noise;
 6. ``report``     - ``diagnosis.json``, ``report.md`` and residual plots.
 
 The simulator is never run here: ``evaluate_batch(case, values_list, step) -> results`` is
@@ -111,8 +114,11 @@ class DiagnosisSettings:
     """Scaled distance to a bound that counts as "at the bound" for the restart (negative: no
     restarts)."""
     restart_top: int = 2
-    """At most this many recalibrated candidates (best fits first) are restarted (each costs
-    about 20 runs; on PUNQ-S3 the hidden aquifer and layer were the best warm fits)."""
+    """This many recalibrated candidates (best fits first) are restarted (each costs about 20
+    runs; on PUNQ-S3 the hidden aquifer and layer were the best warm fits), and with them every
+    other one whose warm fit is within ``tie_band`` of the best and beyond noise (the fitted
+    history cannot tell those apart, so each gets the same chance from the deck's values;
+    PUNQ-S3, a baffle in layer 2: warm fits 431.9, 432.1, 434.1 and the hidden layer 438.0)."""
     restart_grid: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
     """Candidate values (scaled coordinates) tried with the globals at the deck's values before
     each restart; the best (or the candidate's recalibrated value) starts it."""
@@ -610,8 +616,9 @@ class Diagnosis:
     def _restart(self, ids: list[str], minimisers: list[LevenbergMarquardt],
                  refined: dict[int, LevenbergMarquardt],
                  coords: list[Coordinates]) -> dict[str, dict]:
-        """Recalibrate the best ``restart_top`` candidates again from the base model as given,
-        when the calibration left global parameters at (within ``near_bound`` of) their bounds.
+        """Recalibrate the best candidates (:func:`restart_choice`) again from the base model as
+        given, when the calibration left global parameters at (within ``near_bound`` of) their
+        bounds.
 
         A global at its bound has absorbed what it could of a missing effect; with the right
         extension its best value is usually back inside, but the warm-started recalibration
@@ -638,8 +645,10 @@ class Diagnosis:
         by_id = {c.id: c for c in self.candidates}
         warm = {k: min([x.best for x in (m, refined.get(k)) if x is not None and x.best is not None],
                        key=lambda b: b.ssr, default=None) for k, m in enumerate(minimisers)}
-        chosen = sorted((k for k in warm if warm[k] is not None),
-                        key=lambda k: warm[k].ssr)[: s.restart_top]
+        chosen = restart_choice({k: w.ssr for k, w in warm.items() if w is not None},
+                                self.base.ssr_fit, s)
+        if not chosen:
+            return {}
         start_globals = self.coords.to_u(self.default_start())
         settings = s.restart
         if s.budget is not None:
@@ -811,9 +820,21 @@ class Diagnosis:
         unconfirmed = [k for k in self.ranking["beyond_noise"] if k not in self.confirmed]
         rest = [k for k in self.ranking["order"]
                 if k not in confirmed_ok and k not in confirmed_bad and k not in unconfirmed]
-        causes = [cause(k, "recalibrated: the fitted misfit drops beyond noise"
-                        + ("; as good a fit as another candidate, the held-back history prefers it"
-                           if self.confirmed[k].get("tied") else "")) for k in confirmed_ok]
+        # the held-back history has the last word: a candidate it confirms ranks above one
+        # that fits the fitted history better but predicts the held-back history worse
+        confirmed_ok = ([k for k in confirmed_ok if self.confirmed[k]["heldout_beyond_noise"]]
+                        + [k for k in confirmed_ok
+                           if not self.confirmed[k]["heldout_beyond_noise"]])
+
+        def evidence(k: str) -> str:
+            conf = self.confirmed[k]
+            text = "recalibrated: the fitted misfit drops beyond noise"
+            if conf.get("tied"):
+                text += "; as good a fit as another candidate (the held-back history orders them)"
+            return text + ("; the held-back history confirms it" if conf["heldout_beyond_noise"]
+                           else "; the held-back history does not confirm it")
+
+        causes = [cause(k, evidence(k)) for k in confirmed_ok]
         causes += [cause(k, "score test beyond noise (not recalibrated)") for k in unconfirmed]
         top_chi2 = max([self.scores[k].chi2 for k in self.scores] or [0.0])
         causes.append({"kind": "none", "wells": [], "layers": [], "score": None,
@@ -829,10 +850,8 @@ class Diagnosis:
 
         selected = None
         verdict = ""
-        for k in confirmed_ok:
-            if self.confirmed[k]["heldout_beyond_noise"]:
-                selected = k
-                break
+        if confirmed_ok and self.confirmed[confirmed_ok[0]]["heldout_beyond_noise"]:
+            selected = confirmed_ok[0]
         if selected is not None:
             conf = self.confirmed[selected]
             verdict = (f"accepted {selected}: {by_id[selected].description}; fitted E "
@@ -947,6 +966,20 @@ class Diagnosis:
             files = {"diagnosis": out_dir / "diagnosis.json", "report": out_dir / "report.md",
                      "plots": plots}
         return files
+
+
+def restart_choice(warm_ssr: dict[int, float], base_ssr: float,
+                   s: DiagnosisSettings) -> list[int]:
+    """Which warm-started recalibrations (index -> fitted SSR of the best point) to restart
+    from the deck's values: the ``s.restart_top`` best, and every other one within
+    ``s.tie_band`` of the best fit whose fit beats the calibrated base (``base_ssr``) by more
+    than ``s.fit_threshold``. Best fits first."""
+    order = sorted(warm_ssr, key=lambda k: warm_ssr[k])
+    if not order:
+        return []
+    best = warm_ssr[order[0]]
+    return [k for j, k in enumerate(order) if j < s.restart_top or (
+        warm_ssr[k] <= best + s.tie_band and base_ssr - warm_ssr[k] > s.fit_threshold)]
 
 
 def heldout_noise_line(n_heldout: int, s: DiagnosisSettings) -> float:
