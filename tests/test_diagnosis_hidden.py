@@ -51,9 +51,11 @@ sweep (seed 21, every kind) of 2026-11-22 found regional_permeability (PRO-12) a
 (PRO-4); on 2026-11-23, with the restart from the deck's values and up to 6 recalibrated
 candidates, also aquifer_strength AQUCT 1 x5.28 (was: aquifer 2 first; now value 4.80,
 held-back E 0.0117 -> 0.0033) and layer_permeability:5 x3.32 (was: well_skin:PRO-1 first, the
-layer 6th by score; now value 3.39, held-back E 0.0175 -> 0.0032). Still missed (not rerun):
-vertical_permeability:2 x0.01 (signal chi2 427 on the fitted history; the adjacent layer 3
-ranks first). Fault j23 (x0.0012) and the krw exponent (0.48) act after day 2200: their
+layer 6th by score; now value 3.39, held-back E 0.0175 -> 0.0032); since every fit within the
+tie band is restarted, vertical_permeability:2 x0.01 too (was: the adjacent layer 3, whose
+restart was the only one of the four tied fits; now value 0.0103 with the globals back at
+1.02/0.99/1.00/1.02/5.1, held-back E 0.0179 -> 0.0068 - but layer 3's restart is as good on
+the held-back SSR, 200.9 vs 200.7: a narrow call). Fault j23 (x0.0012) and the krw exponent (0.48) act after day 2200: their
 signals on the fitted history are chi2 1.4 and 7 (held back 36 and 104), so the sweep requires
 `none` and the held-back warning there (assert_found_where_visible)."""
 PUNQ_LATE_FAULT = ("fault_transmissibility:j23", 0.0012)
