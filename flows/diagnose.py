@@ -22,6 +22,7 @@ from hmcore.diagnosis import Diagnosis, DiagnosisSettings
 from storage import sha256_json
 from tasks.case import prepare_deck, validate_case
 from tasks.diagnose import simulate_values, store_step
+from tasks.results import report as campaign_report
 
 DEFAULT_STORAGE = "./hmflow-storage"
 STEPS = ("diagnosis-calibration", "diagnosis-residuals", "diagnosis-ranking",
@@ -49,6 +50,34 @@ def _content_hash(files: dict[str, Any]) -> str:
             h.update(pd.util.hash_pandas_object(v, index=True).values.tobytes())
         h.update(name.encode())
     return h.hexdigest()
+
+
+def campaign_start(store, name: str, case: str | None = None) -> tuple[str, dict[str, float]]:
+    """The case and the calibrated parameters a diagnosis of the stored campaign ``name``
+    starts from: its archived best, on the case it was run on (``case``: the one the user
+    named, None: the campaign's own). A case whose files differ from the campaign's (hashes
+    of the case file, deck, includes and history) is refused: the best parameters belong to
+    the campaign's case. LookupError when the campaign has no archived best."""
+    from hmcore.case import BUILTIN_CASES, load_case
+    from tasks.case import case_fingerprint
+
+    best, stored = store.latest(name, "best"), store.latest(name, "case")
+    if best is None or stored is None:
+        raise LookupError(f"no archived best case of campaign '{name}' in {store.root}: run "
+                          f"`hmflow run --campaign {name}` first")
+    inputs = stored.manifest.get("inputs", {})
+    own = str(inputs.get("case"))
+    if own not in BUILTIN_CASES:  # a path as given then, maybe relative to another folder
+        own = stored.read_json("case.json")["source"]
+    case = case or own
+    given = case_fingerprint(load_case(case))
+    differ = sorted(k for k, v in given.items() if inputs.get(k) != v)
+    if differ:
+        raise ValueError(f"campaign '{name}' was calibrated on the case {own}; the case {case} "
+                         f"differs from it ({', '.join(differ)}): its best parameters belong to "
+                         f"the campaign's case - leave --case out, or diagnose {case} without "
+                         "--from-campaign")
+    return case, {k: float(v) for k, v in best.read_json("params.json").items()}
 
 
 def _safe(name: str) -> str:
@@ -126,11 +155,13 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
         report_files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())}
     rep = store("diagnosis-report", report_files)
     path = rep.file("diagnosis.json")
+    whole = campaign_report(storage, campaign)  # the campaign's report, with the diagnosis
     sel = doc["selected"]
     logger.info(f"diagnosis of {loaded.name}: {doc['verdict']}")
     return {"campaign": campaign, "storage": storage, "causes": doc["causes"],
             "selected": sel, "verdict": doc["verdict"], "gain": doc["gain"],
             "diagnosis_path": str(path), "report_path": str(rep.file("report.md")),
+            "campaign_report_path": str(whole.file("report.md")),
             "artifacts": {k: v.ref() for k, v in versions.items()},
             "simulations": d.n_runs}
 
@@ -167,6 +198,9 @@ def print_diagnosis(result: dict, console=None, most: int = 8) -> None:
     console.print(gt)
     console.print(f"diagnosis: {result['diagnosis_path']}")
     console.print(f"report:    {result['report_path']}")
+    if result.get("campaign_report_path"):
+        console.print(f"campaign report (rebuild with `hmflow report --campaign "
+                      f"{result['campaign']}`): {result['campaign_report_path']}")
 
 
 def diagnose_command(case: str = "synthetic", storage: Path = Path(DEFAULT_STORAGE),

@@ -87,9 +87,35 @@ def parameter_distance(found: dict[str, float], truth: dict[str, float],
     return out
 
 
-def build_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: dict | None,
-                 truth: dict[str, float] | None) -> tuple[str, dict]:
-    """Markdown report and its JSON twin from stored results (no simulator involved)."""
+def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best: dict | None,
+                 truth: dict[str, float] | None,
+                 diagnosis: dict | None = None) -> tuple[str, dict]:
+    """Markdown report and its JSON twin from stored results (no simulator involved).
+
+    ``table``: the consolidated evaluations (None: the campaign ran no calibration, e.g. a
+    diagnosis alone); ``diagnosis``: the campaign's latest ``diagnosis.json``, appended as a
+    section (its plots are linked by file name, stored beside the report)."""
+    if table is None:
+        markdown = "\n".join([f"# hmflow campaign `{campaign}`", "",
+                               f"Case **{case_doc['name']}** ({case_doc['source']}); no "
+                               "calibration campaign was run under this name.", ""]) + "\n"
+        doc: dict = {"campaign": campaign, "case": case_doc["name"], "calls": 0, "best": None}
+    else:
+        markdown, doc = _campaign_report(campaign, case_doc, table, best, truth)
+    if diagnosis is not None:
+        from hmcore.diagnosis.report import markdown_report
+
+        markdown += "\n" + markdown_report(diagnosis, level=2)
+        sel = diagnosis.get("selected")
+        doc["diagnosis"] = {"verdict": diagnosis["verdict"], "gain": diagnosis["gain"],
+                            "selected": None if sel is None else sel["id"],
+                            "causes": [c["id"] for c in diagnosis["causes"][:10]],
+                            "plots": diagnosis.get("plots", [])}
+    return markdown, to_jsonable(doc)
+
+
+def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: dict | None,
+                     truth: dict[str, float] | None) -> tuple[str, dict]:
     n = len(table)
     counts = table["status"].value_counts().to_dict() if n else {}
     lines = [f"# hmflow campaign `{campaign}`", "",

@@ -240,9 +240,13 @@ def _print_report(storage: Path, campaign: str) -> None:
     rep = store.latest(campaign, "report")
     doc = rep.read_json("report.json")
     best = doc.get("best")
-    console.print(f"\n[bold]{doc['campaign']}[/]: {doc['calls']} calls {doc['status_counts']}")
+    if doc["calls"]:
+        console.print(f"\n[bold]{doc['campaign']}[/]: {doc['calls']} calls {doc['status_counts']}")
+    else:
+        console.print(f"\n[bold]{doc['campaign']}[/]: no calibration campaign under this name")
     if not best:
-        console.print("[red]no valid simulation - nothing to call best[/]")
+        if doc["calls"]:
+            console.print("[red]no valid simulation - nothing to call best[/]")
     else:
         console.print(f"best call {best['index']}: E = {best['E']:.6g}"
                       + (f", held-back E = {best['E_heldout']:.6g}" if best.get("E_heldout") else ""))
@@ -252,6 +256,10 @@ def _print_report(storage: Path, campaign: str) -> None:
             console.print(f"  {k:<12}   truth {d['truth']:.4f}, error {d['error']:+.4f} "
                           f"({100 * d['error_of_range']:.1f} % of range)")
         print_tables(store.latest(campaign, "best").read_json("metrics.json")["metrics"], "Best case:")
+    diagnosis = doc.get("diagnosis")
+    if diagnosis:
+        console.print(f"diagnosis: selected {diagnosis['selected'] or 'none'}; "
+                      f"{diagnosis['verdict']}", highlight=False)
     console.print(f"report: {rep.file('report.md')}")
 
 
@@ -274,32 +282,38 @@ def report(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
 
 
 @app.command()
-def diagnose(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
+def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP + " Default: "
+                                                 "the --from-campaign's case, else 'synthetic'."),
              storage: Path = typer.Option(Path("./hmflow-storage"), "--storage",
                                           help="Artifact store"),
              budget: Optional[int] = typer.Option(None, "--budget", min=1, help="Cap on simulator "
                                                   "calls (default: as many as the steps need)"),
              workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
              campaign: Optional[str] = typer.Option(None, "--campaign", help="Name the diagnosis "
-                                                    "is stored under (default CASE-diagnosis)"),
+                                                    "is stored under (default: the "
+                                                    "--from-campaign, else CASE-diagnosis)"),
              from_campaign: Optional[str] = typer.Option(
                  None, "--from-campaign", help="Start from this stored campaign's best "
                  "parameters instead of calibrating the case's parameters first")) -> None:
     """Find what the calibrated model gets wrong, name the cause, extend the model, measure the
     gain on the fitted and the held-back history; writes diagnosis.json (path printed)."""
-    from flows.diagnose import diagnose_command
+    from flows.diagnose import campaign_start, diagnose_command
 
-    _load(case)  # clear errors before any simulator time or Prefect start-up
     calibrated = None
     if from_campaign:
         from storage import ArtifactStore
 
-        best = ArtifactStore(storage.resolve()).latest(from_campaign, "best")
-        if best is None:
-            err_console.print(f"[red]x[/] no archived best case of campaign '{from_campaign}' in "
-                              f"{storage}: run `hmflow run --campaign {from_campaign}` first")
+        if case:
+            _load(case)
+        try:
+            case, calibrated = campaign_start(ArtifactStore(storage.resolve()), from_campaign,
+                                              case)
+        except (LookupError, ValueError, CaseError) as exc:
+            err_console.print(f"[red]x[/] {exc}", highlight=False)
             raise typer.Exit(2)
-        calibrated = best.read_json("params.json")
+        campaign = campaign or from_campaign  # the diagnosis goes into that campaign's report
+    case = case or "synthetic"
+    _load(case)  # clear errors before any simulator time or Prefect start-up
     try:
         diagnose_command(case=case, storage=storage, budget=budget, workers=workers,
                          campaign=campaign, calibrated=calibrated, console=console)

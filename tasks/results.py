@@ -53,22 +53,33 @@ def archive_best(store_root: str, campaign: str, results: ArtifactVersion) -> Ar
 
 @task(name="build-report", cache_policy=NO_CACHE)
 def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = True) -> ArtifactVersion:
-    """Rebuild the report from stored artifacts only (zero simulator calls)."""
+    """Rebuild the report from stored artifacts only (zero simulator calls): the campaign's
+    results and best case, and its latest diagnosis (``diagnosis-report``) when it has one, its
+    plots copied beside ``report.md``."""
     store = ArtifactStore(store_root)
     results = store.latest(campaign, "results")
     case = store.latest(campaign, "case")
-    if results is None or case is None:
-        raise FileNotFoundError(f"campaign '{campaign}' in {store_root} has no stored results; "
-                                "run the campaign first (hmflow run)")
-    best = store.latest(campaign, "best")
+    diagnosis = store.latest(campaign, "diagnosis-report")
+    if case is None or (results is None and diagnosis is None):
+        raise FileNotFoundError(f"campaign '{campaign}' in {store_root} has no stored results "
+                                "and no diagnosis; run the campaign first (hmflow run, or "
+                                "hmflow diagnose)")
+    best = store.latest(campaign, "best") if results is not None else None
     case_doc = case.read_json("case.json")
-    table = results.read_parquet("evaluations.parquet")
+    table = results.read_parquet("evaluations.parquet") if results is not None else None
     best_doc = best.read_json("metrics.json") if best else None
+    diagnosis_doc = diagnosis.read_json("diagnosis.json") if diagnosis is not None else None
     truth = _truth_for(case_doc)
-    markdown, doc = build_report(campaign, case_doc, table, best_doc, truth)
-    inputs = {"results": results.ref(), "case": case.ref(), "best": best.ref() if best else None}
-    version = store.put_files(campaign, "report", inputs,
-                              {"report.md": markdown, "report.json": doc}, code_version())
+    markdown, doc = build_report(campaign, case_doc, table, best_doc, truth, diagnosis_doc)
+    inputs = {"results": results.ref() if results is not None else None, "case": case.ref(),
+              "best": best.ref() if best else None}
+    if diagnosis is not None:
+        inputs["diagnosis"] = diagnosis.ref()
+    files: dict = {"report.md": markdown, "report.json": doc}
+    for name in (diagnosis_doc or {}).get("plots", []):
+        if name in diagnosis.files:
+            files[name] = diagnosis.file(name).read_bytes()
+    version = store.put_files(campaign, "report", inputs, files, code_version())
     if publish_prefect_artifacts:
         key = "".join(ch if ch.isalnum() else "-" for ch in campaign.lower())
         create_markdown_artifact(markdown, key=f"{key}-report", description=f"hmflow report {campaign}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -40,6 +41,26 @@ def test_run_on_the_synthetic_default_then_report_only(tmp_path):
     doc = json.loads(sorted((storage / "report").glob("v*/report.json"))[-1].read_text())
     assert doc["calls"] == 4 and set(doc["truth_distance"]) == {
         "poro_mult", "permx_mult", "permy_mult", "permz_mult", "skin"}
+
+    # a diagnosis of this campaign starts from its best on its own case: another is refused
+    # before any simulation (a broken case with its own errors, a valid one as a different case)
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[case]\nname = "x"\ndeck = "missing.DATA"\nobserved = "missing.csv"\n')
+    refused = hmflow("diagnose", "--from-campaign", "synthetic-random-seed3", "--case", str(bad),
+                     cwd=tmp_path)
+    assert refused.returncode == 2 and "deck file not found" in refused.stderr
+    source = Path(json.loads(sorted((storage / "case").glob("v*/case.json"))[-1].read_text())
+                  ["source"])
+    shutil.copytree(source.parent, tmp_path / "copy")
+    toml = tmp_path / "copy" / source.name
+    toml.write_text(toml.read_text().replace("time_tolerance_days = 30", "time_tolerance_days = 20")
+                    if "time_tolerance_days" in toml.read_text() else
+                    toml.read_text().replace("[case]", "[case]\ntime_tolerance_days = 20"))
+    refused = hmflow("diagnose", "--from-campaign", "synthetic-random-seed3", "--case", str(toml),
+                     cwd=tmp_path)
+    assert refused.returncode == 2, refused.stdout + refused.stderr
+    assert "calibrated on the case" in refused.stderr and "case_file" in refused.stderr
+    assert not (storage / "diagnosis-runs").exists()
 
 
 def test_report_for_an_unknown_campaign_is_a_clear_error(tmp_path):

@@ -505,6 +505,65 @@ def test_cli_printing_of_a_diagnosis(tmp_path):
     assert "fitted" in text and "held back" in text and "diagnosis.json" in text
 
 
+def test_the_campaign_report_carries_the_diagnosis_and_from_campaign_keeps_to_its_case(tmp_path,
+                                                                                       capsys):
+    """`hmflow report` rebuilds a campaign's report from stored artifacts: with a diagnosis
+    stored in the campaign (its gain, ranking and plots) and for a campaign that is a
+    diagnosis alone; `--from-campaign` starts from the campaign's best on its own case and
+    refuses another (real store, real files; the linear stand-in makes the diagnosis)."""
+    from flows.diagnose import campaign_start
+    from hmcore.diagnosis import diagnose
+    from storage import ArtifactStore
+    from tasks.case import prepare_deck
+    from tasks.diagnose import store_step
+    from tasks.results import report
+
+    hidden = Parameter(name="skin_PROD3", kind="skin", wells=("PROD3",), low=-5, high=30)
+    (tmp_path / "c").mkdir()
+    case, sim, truth = _linear_case(tmp_path / "c", hidden, 12.0)
+    doc = diagnose(case, sim.evaluate_batch, out_dir=tmp_path / "out")
+    store_root = str(tmp_path / "store")
+    store = ArtifactStore(store_root)
+    prepare_deck.fn(case, str(case.source), store_root, "linear-diagnosis")
+    with pytest.raises(FileNotFoundError, match="no stored results and no diagnosis"):
+        report.fn(store_root, "linear-diagnosis", publish_prefect_artifacts=False)
+    files = {p.name: p.read_bytes() for p in (tmp_path / "out").iterdir()}
+    store_step.fn(store_root, "linear-diagnosis", "diagnosis-report", {"n": 1}, files)
+    rep = report.fn(store_root, "linear-diagnosis", publish_prefect_artifacts=False)
+    text = rep.read_json("report.json")
+    md = rep.file("report.md").read_text()
+    assert md.startswith("# hmflow campaign `linear-diagnosis`")
+    assert "## Diagnosis of case `linear`" in md and "### Gain" in md and "### Ranked causes" in md
+    assert "well_skin" in md and doc["verdict"] in md
+    assert text["diagnosis"]["selected"] == doc["selected"]["id"] == "well_skin:PROD3"
+    assert text["calls"] == 0 and rep.verify() == []
+    assert doc["plots"] and all(p in rep.files for p in doc["plots"])  # the plots travel along
+    assert report.fn(store_root, "linear-diagnosis", publish_prefect_artifacts=False).reused
+    from hmflow.cli import _print_report  # what `hmflow report` prints for it
+
+    _print_report(Path(store_root), "linear-diagnosis")
+    printed = " ".join(capsys.readouterr().out.split())
+    assert "no calibration campaign under this name" in printed
+    assert "diagnosis: selected well_skin:PROD3" in printed
+
+    # a campaign with an archived best: the diagnosis starts there, on the campaign's case
+    with pytest.raises(LookupError, match="no archived best case"):
+        campaign_start(store, "linear-diagnosis")
+    store.put_files("linear-diagnosis", "best", {"index": 0}, {"params.json": truth}, "test")
+    ref, start = campaign_start(store, "linear-diagnosis")
+    assert Path(ref) == case.source and start == truth
+    other = tmp_path / "other"
+    other.mkdir()
+    for f in (tmp_path / "c").iterdir():
+        if f.is_file():
+            (other / f.name).write_bytes(f.read_bytes())
+    obs = pd.read_csv(other / "observed.csv")
+    obs.loc[0, "value"] += 1.0  # another history
+    obs.to_csv(other / "observed.csv", index=False)
+    with pytest.raises(ValueError, match="differs from it \\(observed\\)"):
+        campaign_start(store, "linear-diagnosis", str(other / "case.toml"))
+
+
 def _restart_settings(**kw):
     """Settings that leave the warm-started recalibration where it starts (no line search, no
     LM step, no refinement) and count every global as at its bound, so that the restart from
@@ -560,6 +619,21 @@ def test_restart_is_rejected_when_the_globals_alone_beat_the_calibration(tmp_pat
         assert c["ssr_fit_after"] > c["restart"]["ssr_fit"]  # the restart's fit is not used
 
 
+def test_confirm_choice_recalibrates_every_screened_candidate_when_the_lead_is_weak():
+    from hmcore.diagnosis.diagnose import DiagnosisSettings, confirm_choice
+
+    s = DiagnosisSettings()
+    # PUNQ-S3 layer 1 x3.6 (seed 23): the leader scores 25.6, the hidden layer 9th with 9.5
+    weak = [("v4", 25.6), ("v5", 21.5), ("l5", 20.6), ("s1", 15.5), ("v2", 15.3), ("f9", 15.0),
+            ("r11", 10.3), ("gas", 9.9), ("l1", 9.5), ("s5", 8.4), ("x", 8.1)]
+    assert confirm_choice(weak, s) == [k for k, _ in weak[:10]]
+    # a strong leader: the first four, and more while they score alike (PUNQ-S3 layer 5 x3.3)
+    strong = [("a", 97.0), ("b", 95.0), ("c", 94.0), ("d", 77.3), ("e", 77.0), ("f", 60.0),
+              ("g", 50.0)]
+    assert confirm_choice(strong, s) == ["a", "b", "c", "d", "e"]
+    assert confirm_choice([], s) == []
+
+
 def test_restart_choice_takes_the_best_fits_and_every_tie_beyond_noise():
     """PUNQ-S3 with a baffle hidden in layer 2 (x0.01): the warm-started fits of the baffle in
     layer 3, the gas exponent, layer 1's permeability and the hidden baffle ended at SSR
@@ -576,6 +650,8 @@ def test_restart_choice_takes_the_best_fits_and_every_tie_beyond_noise():
     # nothing beyond noise (a control with globals at their bounds): only the restart_top best
     assert restart_choice(warm, 440.0, s) == [1, 3]
     assert restart_choice({}, 476.7, s) == []
+    # more ties than restart_max (10 recalibrated when the lead is weak): the best four
+    assert restart_choice({k: 430.0 + k for k in range(6)}, 476.7, s) == [0, 1, 2, 3]
 
 
 def test_the_held_back_history_has_the_last_word_in_the_ranking(tmp_path):

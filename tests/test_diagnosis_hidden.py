@@ -56,10 +56,17 @@ tie band is restarted, vertical_permeability:2 x0.01 too (was: the adjacent laye
 restart was the only one of the four tied fits; now value 0.0103 with the globals back at
 1.02/0.99/1.00/1.02/5.1, held-back E 0.0179 -> 0.0068 - but layer 3's restart is as good on
 the held-back SSR, 200.9 vs 200.7: a narrow call). Fault j23 (x0.0012) and the krw exponent (0.48) act after day 2200: their
-signals on the fitted history are chi2 1.4 and 7 (held back 36 and 104), so the sweep requires
-`none` and the held-back warning there (assert_found_where_visible)."""
+signals on the fitted history read chi2 1.4 and 7 (held back 36 and 104) under the noise first
+estimated from the observed series; since 2026-11-24 `hide` measures under the noise the
+diagnosis estimates with the right globals, where j23 reads 16.4 once the globals absorb (at the
+line; the diagnosis scored it 7 and reported `none` with the held-back warning)."""
 PUNQ_LATE_FAULT = ("fault_transmissibility:j23", 0.0012)
-"""The PUNQ-S3 sweep's fault (seed 21): it shows only after day 2200."""
+LATE_FAULT_HISTORY_END = 1600.0
+"""The PUNQ-S3 sweep's fault (seed 21) acts late: fitted to day 1600 its signal is chi2 5
+(192 held back). Fitted to day 2200 it is 17.6 (16.4 once the globals absorb what they can;
+held back 180) under the noise the diagnosis estimates with the right globals, at the line:
+the diagnosis of 2026-11-24 scored it 7 (second) and reported `none` with the held-back
+warning. (Under the noise first estimated from the observed series the signal read 1.4.)"""
 SWEEP_SEEDS = (11, 12)
 PUNQ_HISTORY_END = 2200.0
 PUNQ_RECORD_END = 2936.0  # the measured record of PUNQ-S3: the first 8 years
@@ -90,20 +97,23 @@ def assert_found(doc: dict, effect) -> None:
 
 def assert_found_where_visible(doc: dict, effect, case_dir: Path) -> None:
     """:func:`assert_found` when the effect shows in the fitted history (its signal, measured by
-    `hide`, reaches the score test's line once the global parameters absorbed what they can);
-    otherwise the right answer is that nothing in the fitted history names a cause, and where
+    `hide`, reaches the score test's line once the global parameters absorbed what they can)
+    or was found all the same; otherwise the right answer is that nothing in the fitted history
+    names a cause (a wrong one is a failure), and where
     the held-back signal is strong enough to lift the held-back misfit beyond the noise line,
     the verdict must say that the held-back history is missed."""
     from hmcore.diagnosis.diagnose import DiagnosisSettings, heldout_noise_line
 
+    from hmcore.diagnosis.hidden import judge
+
     signal = json.loads((case_dir / "hidden_effect.json").read_text())["signal"]
-    if signal["visible_in_fitted_history"]:
-        assert_found(doc, effect)
+    if signal["visible_in_fitted_history"] or judge(doc, effect)["found"]:
+        assert_found(doc, effect)  # found is right even where the signal is weak
         return
     what = f"invisible {effect.candidate.id} (signal {signal}); {doc['verdict']}"
     assert doc["causes"][0]["kind"] == "none" and doc["selected"] is None, what
     held = signal.get("chi2_heldout_after_globals", signal["chi2_heldout"])
-    n = signal["n_heldout"]
+    n = signal.get("n_heldout_measured", signal["n_heldout"])
     assert held < heldout_noise_line(n, DiagnosisSettings()) - n or \
         not doc["heldout_within_noise"], what
 
@@ -221,6 +231,16 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
     assert len(ranking["candidates"]) == len(doc["ranking"]["candidates"])
     text = console.export_text()
     assert "Ranked causes" in text and "well_skin" in text and "diagnosis.json" in text
+    # the campaign's report carries the diagnosis, and `hmflow report` rebuilds it from storage
+    rep = store.latest("hidden-skin", "report")
+    assert result["campaign_report_path"] == str(rep.file("report.md"))
+    md = rep.file("report.md").read_text()
+    assert "## Diagnosis of case" in md and "### Gain" in md and effect.candidate.id in md
+    assert all(p in rep.files for p in doc["plots"]) and rep.verify() == []
+    again = runner.invoke(app, ["report", "--storage", str(tmp_path / "store"),
+                                "--campaign", "hidden-skin"])
+    assert again.exit_code == 0, again.output
+    assert f"diagnosis: selected {effect.candidate.id}" in again.output
     assert result["simulations"] == doc["cost"]["simulations"]
     shown = runner.invoke(app, ["reveal", "--hidden", str(tmp_path / "case" / "hidden_effect.json"),
                                 "--diagnosis", result["diagnosis_path"]])
@@ -265,7 +285,7 @@ def test_effect_signal_is_zero_for_a_neutral_effect_and_names_an_invisible_one(t
     out = runner.invoke(app, ["hide", "--out", str(tmp_path / "punq"), "--deck",
                               str(PUNQ / "PUNQS3.DATA"), "--candidate",
                               PUNQ_LATE_FAULT[0], "--value", str(PUNQ_LATE_FAULT[1]),
-                              "--history-end", str(PUNQ_HISTORY_END), "--record-end",
+                              "--history-end", str(LATE_FAULT_HISTORY_END), "--record-end",
                               str(PUNQ_RECORD_END), "--seed", "21"])
     assert out.exit_code == 0, out.output
     signal = json.loads((tmp_path / "punq" / "hidden_effect.json").read_text())["signal"]

@@ -67,6 +67,13 @@ class DiagnosisSettings:
     leader's: when the globals absorbed a strong effect, several candidates score alike and
     the linear ranking cannot order them (PUNQ-S3, layer 5 x3.3: chi2 97, 95, 94, 77.3 and
     the hidden layer 77.0)."""
+    weak_lead: float = 50.0
+    confirm_weak_max: int = 10
+    """When the leading candidate's score test removes less than ``weak_lead``, every screened
+    candidate is recalibrated, up to ``confirm_weak_max``: near the line the linear ranking
+    cannot be trusted (a response that bends, several candidates the globals absorb alike).
+    PUNQ-S3, layer 1 x3.6: the globals absorb all but chi2 19 of it, the score test puts it 9th
+    (9.5, the leader 25.6), and the four recalibrated candidates fit alike."""
     chi2_threshold: float = 15.0
     """A candidate is beyond noise when its score test removes more than this (chi2 units).
     Pure noise gives chi-square(1) values; in the synthetic controls and on PUNQ-S3's
@@ -119,6 +126,8 @@ class DiagnosisSettings:
     other one whose warm fit is within ``tie_band`` of the best and beyond noise (the fitted
     history cannot tell those apart, so each gets the same chance from the deck's values;
     PUNQ-S3, a baffle in layer 2: warm fits 431.9, 432.1, 434.1 and the hidden layer 438.0)."""
+    restart_max: int = 4
+    """At most this many restarts (each costs about 20 runs)."""
     restart_grid: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
     """Candidate values (scaled coordinates) tried with the globals at the deck's values before
     each restart; the best (or the candidate's recalibrated value) starts it."""
@@ -479,11 +488,7 @@ class Diagnosis:
         by_id = {c.id: c for c in self.candidates}
         s = self.settings
         screened = self.ranking["screened"]
-        top = screened[: s.confirm_top]
-        if screened:
-            lead = self.scores[screened[0]].chi2
-            top += [k for k in screened[s.confirm_top: s.confirm_max]
-                    if self.scores[k].chi2 >= s.confirm_close * lead]
+        top = confirm_choice([(k, self.scores[k].chi2) for k in screened], s)
         models = []
         for cid in top:
             c = by_id[cid]
@@ -584,7 +589,7 @@ class Diagnosis:
             e_ho_b, e_ho_a = base_sc["E_heldout"], sc["E_heldout"]
             fit_ok = d_fit > s.fit_threshold
             ho_ok, quiet = heldout_confirms(base_sc["ssr_heldout"], sc["ssr_heldout"], e_ho_b,
-                                            e_ho_a, self.obs.n_heldout, s)
+                                            e_ho_a, self.obs.n_noise("heldout"), s)
             self.confirmed_runs[cid] = run
             self.confirmed[cid] = {
                 "start_value": starts[cid][1].values.get(by_id[cid].name, by_id[cid].neutral),
@@ -860,7 +865,8 @@ class Diagnosis:
             if conf["delta_ssr_heldout"] <= s.heldout_threshold:
                 verdict += (f" (the calibrated model already fitted the held-back history "
                             f"within noise, whitened SSR {conf['ssr_heldout_before']:.0f} over "
-                            f"{self.obs.n_heldout} points: it cannot confirm more than that the "
+                            f"{self.obs.n_noise('heldout')} measured points: it cannot confirm "
+                            "more than that the "
                             f"extension does not spoil it, SSR change "
                             f"{-conf['delta_ssr_heldout']:+.1f})")
         elif confirmed_ok:
@@ -882,11 +888,12 @@ class Diagnosis:
             verdict = ("no candidate explains more of the residual than noise would: the "
                        "calibrated model is consistent with the data within the noise level")
         base_sc = self._scores(self.base)
-        n_ho = self.obs.n_heldout
+        n_ho = self.obs.n_noise("heldout")  # the rate controls' residuals are 0, not noise
         heldout_quiet = n_ho == 0 or base_sc["ssr_heldout"] <= heldout_noise_line(n_ho, s)
         if selected is None and not heldout_quiet:
             verdict += (f". But the calibrated model does NOT fit the held-back history within "
-                        f"noise (whitened SSR {base_sc['ssr_heldout']:.0f} over {n_ho} points, "
+                        f"noise (whitened SSR {base_sc['ssr_heldout']:.0f} over {n_ho} measured "
+                        "points, "
                         f"noise up to {heldout_noise_line(n_ho, s):.0f}): something acts after "
                         f"day {self.obs.history_end_days:g} that the fitted history does not "
                         "show (a barrier or aquifer reached later, water or gas arriving); fit "
@@ -899,7 +906,9 @@ class Diagnosis:
                 "ssr_fit_after": after["ssr_fit_after"] if after else base_sc["ssr_fit"],
                 "ssr_heldout_before": base_sc["ssr_heldout"],
                 "ssr_heldout_after": after["ssr_heldout_after"] if after else base_sc["ssr_heldout"],
-                "n_fit": self.obs.n_fit, "n_heldout": self.obs.n_heldout}
+                "n_fit": self.obs.n_fit, "n_heldout": self.obs.n_heldout,
+                "n_fit_measured": self.obs.n_noise("fit"),
+                "n_heldout_measured": self.obs.n_noise("heldout")}
         shown = selected or (confirmed_ok[0] if confirmed_ok else
                              (next(iter(self.confirmed)) if self.confirmed else None))
         per_well = _per_well_table(base_sc["per_well_response"],
@@ -968,23 +977,40 @@ class Diagnosis:
         return files
 
 
+def confirm_choice(screened: list[tuple[str, float]], s: DiagnosisSettings) -> list[str]:
+    """Which screened candidates (id, score-test chi2; best first) to recalibrate: the
+    ``s.confirm_top`` first, and more up to ``s.confirm_max`` while they reach
+    ``s.confirm_close`` of the leader's chi2; every one up to ``s.confirm_weak_max`` when the
+    leader's chi2 is under ``s.weak_lead`` (the linear ranking is not to be trusted there)."""
+    if not screened:
+        return []
+    ids = [k for k, _ in screened]
+    lead = screened[0][1]
+    if lead < s.weak_lead:
+        return ids[: max(s.confirm_top, s.confirm_weak_max)]
+    return ids[: s.confirm_top] + [k for k, chi2 in screened[s.confirm_top: s.confirm_max]
+                                   if chi2 >= s.confirm_close * lead]
+
+
 def restart_choice(warm_ssr: dict[int, float], base_ssr: float,
                    s: DiagnosisSettings) -> list[int]:
     """Which warm-started recalibrations (index -> fitted SSR of the best point) to restart
     from the deck's values: the ``s.restart_top`` best, and every other one within
     ``s.tie_band`` of the best fit whose fit beats the calibrated base (``base_ssr``) by more
-    than ``s.fit_threshold``. Best fits first."""
+    than ``s.fit_threshold``; at most ``s.restart_max``. Best fits first."""
     order = sorted(warm_ssr, key=lambda k: warm_ssr[k])
     if not order:
         return []
     best = warm_ssr[order[0]]
     return [k for j, k in enumerate(order) if j < s.restart_top or (
-        warm_ssr[k] <= best + s.tie_band and base_ssr - warm_ssr[k] > s.fit_threshold)]
+        warm_ssr[k] <= best + s.tie_band and base_ssr - warm_ssr[k] > s.fit_threshold)
+            ][: max(s.restart_max, s.restart_top)]
 
 
 def heldout_noise_line(n_heldout: int, s: DiagnosisSettings) -> float:
     """Largest held-back whitened SSR still consistent with noise: the chi-square mean
-    + ``s.quiet_sd`` standard deviations."""
+    + ``s.quiet_sd`` standard deviations (``n_heldout``: the measured points, rate controls
+    not counted; see :meth:`ObservationSet.n_noise`)."""
     return n_heldout + s.quiet_sd * math.sqrt(2.0 * n_heldout)
 
 

@@ -292,8 +292,10 @@ def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=No
 
     The truth without the effect (``truth_globals``: the calibration parameters' true values,
     one simulator run) against the truth with it (``truth_responses.csv`` beside the case),
-    standardised and whitened under the noise model the diagnosis starts from (sigma from the
-    CSV or estimated from the observed series, AR(1) in time): ``chi2_fit`` and
+    standardised and whitened under the noise model the diagnosis arrives at when its five
+    parameters are right (sigma from the CSV or estimated, and the AR(1) time correlation,
+    from the residuals of the run without the effect: the noise plus what the effect leaves,
+    as the diagnosis sees them): ``chi2_fit`` and
     ``chi2_heldout`` are the sums of squares of that difference on the fitted and the held-back
     history (``n_fit``, ``n_heldout`` points).
 
@@ -314,28 +316,40 @@ def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=No
     folder = Path(case_toml).parent
     truth = pd.read_csv(folder / "truth_responses.csv")
     obs = ObservationSet.from_case(case)
-    z_truth = obs.standardized(truth)
     names = case.space.names
     with tempfile.TemporaryDirectory(prefix="effect-signal-", dir=folder) as tmp:
         counter = iter(range(10**9))
 
-        def difference(values: dict[str, float]) -> tuple[np.ndarray | None, str]:
-            """Standardised base model at ``values`` minus the truth (None: the run failed)."""
+        def simulate(values: dict[str, float]):
             run_dir = Path(tmp) / f"run{next(counter)}"
             res = evaluate(case, values, run_dir, simulator)
             shutil.rmtree(run_dir, ignore_errors=True)  # the responses are in memory
+            return res
+
+        start = {n: float(truth_globals[n]) for n in names}
+        without = simulate(start)
+        if without.responses is None:
+            return {"error": f"the truth without the effect failed to simulate: "
+                             f"{without.reason}"}
+        # the noise model the diagnosis arrives at when its five parameters are right: sigma
+        # (where the CSV gives none) and its time correlation estimated from the residuals of
+        # the model without the effect, which carry the noise and what the effect leaves
+        obs = obs.refine(without.responses, case.observed)
+        z_truth = obs.standardized(truth)
+
+        def difference(values: dict[str, float]) -> tuple[np.ndarray | None, str]:
+            """Standardised base model at ``values`` minus the truth (None: the run failed)."""
+            res = without if values == start else simulate(values)
             if res.responses is None:
                 return None, str(res.reason)
             return obs.standardized(res.responses) - z_truth, ""
 
-        start = {n: float(truth_globals[n]) for n in names}
         d, reason = difference(start)
-        if d is None:
-            return {"error": f"the truth without the effect failed to simulate: {reason}"}
         fit, held = obs.whiten(d, "fit"), obs.whiten(d, "heldout")
         chi2_fit, chi2_held = float(fit @ fit), float(held @ held)
         out = {"chi2_fit": chi2_fit, "chi2_heldout": chi2_held, "n_fit": int(fit.size),
-               "n_heldout": int(held.size), "history_end_days": obs.history_end_days}
+               "n_heldout": int(held.size), "n_heldout_measured": obs.n_noise("heldout"),
+               "history_end_days": obs.history_end_days}
         remains = chi2_fit
         if absorbed and chi2_fit >= SIGNAL_VISIBLE:
             coords = Coordinates(case.space.parameters)

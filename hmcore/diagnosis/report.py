@@ -33,15 +33,20 @@ def ranking_table(doc: dict, most: int = 15) -> str:
     return "\n".join(lines)
 
 
+def _points(gain: dict, period: str) -> str:
+    n, m = gain[f"n_{period}"], gain.get(f"n_{period}_measured")
+    return f"{n} points" if m is None else f"{n} points, {m} measured: noise alone ~{m}"
+
+
 def gain_table(doc: dict) -> str:
     g = doc["gain"]
     lines = ["| misfit | before | after |", "|---|---|---|",
              f"| E, fitted history | {_f(g['fit_before'], 5)} | {_f(g['fit_after'], 5)} |",
              f"| E, held-back history | {_f(g['heldout_before'], 5)} | "
              f"{_f(g['heldout_after'], 5)} |",
-             f"| whitened SSR, fitted ({g['n_fit']} points) | {_f(g['ssr_fit_before'], 6)} | "
+             f"| whitened SSR, fitted ({_points(g, 'fit')}) | {_f(g['ssr_fit_before'], 6)} | "
              f"{_f(g['ssr_fit_after'], 6)} |",
-             f"| whitened SSR, held back ({g['n_heldout']} points) | "
+             f"| whitened SSR, held back ({_points(g, 'heldout')}) | "
              f"{_f(g['ssr_heldout_before'], 6)} | {_f(g['ssr_heldout_after'], 6)} |"]
     return "\n".join(lines)
 
@@ -73,27 +78,30 @@ def well_table(doc: dict) -> str:
     return "\n".join(lines)
 
 
-def markdown_report(doc: dict) -> str:
+def markdown_report(doc: dict, level: int = 1) -> str:
+    """The diagnosis as Markdown; ``level`` is the level of its title (2 inside a campaign
+    report, whose sections move down with it). Plots are linked by file name."""
     sel = doc.get("selected")
-    lines = [f"# Diagnosis of case `{doc['case']}`", "",
+    h1, h2 = "#" * level, "#" * (level + 1)
+    lines = [f"{h1} Diagnosis of case `{doc['case']}`", "",
              "Calibrated parameters: " + ", ".join(f"{k} = {_f(v)}"
                                                      for k, v in doc["calibrated"].items())
              + f"; history fitted up to day {_f(doc['history_end_days'], 6)}, later data held "
-             "back.", "", "## Verdict", "", doc["verdict"], "",
+             "back.", "", f"{h2} Verdict", "", doc["verdict"], "",
              "Selected extension: " + (f"**{sel['kind']}** ({sel['id']}) - {sel['description']}"
                                        if sel else "**none**"), "",
-             "## Gain", "", gain_table(doc), "", "## Ranked causes", "",
-             ranking_table(doc), "", "## Recalibrated candidates", "",
+             f"{h2} Gain", "", gain_table(doc), "", f"{h2} Ranked causes", "",
+             ranking_table(doc), "", f"{h2} Recalibrated candidates", "",
              "Before: fitted SSR " + _f(doc["gain"]["ssr_fit_before"], 6) + ", held-back SSR "
              + _f(doc["gain"]["ssr_heldout_before"], 6) + ".", "", recalibration_table(doc), "",
-             "## Misfit per well and response (E contributions)", "",
-             well_table(doc), "", "## Residual findings beyond noise (calibrated model)", ""]
+             f"{h2} Misfit per well and response (E contributions)", "",
+             well_table(doc), "", f"{h2} Residual findings beyond noise (calibrated model)", ""]
     flags = doc["residuals"].get("flags", [])
     lines += [f"- {f['text']}" for f in flags[:40]] or ["- none"]
     if len(flags) > 40:
         lines.append(f"- ... and {len(flags) - 40} more")
     if doc.get("plots"):
-        lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in doc["plots"]]
+        lines += ["", f"{h2} Plots", ""] + [f"![{p}]({p})" for p in doc["plots"]]
     cost = doc.get("cost", {})
     lines += ["", f"Cost: {cost.get('simulations')} simulations, "
                   f"{_f(cost.get('wall_time_s'), 4)} s wall time.", ""]

@@ -256,6 +256,13 @@ class ObservationSet:
     def n_heldout(self) -> int:
         return len(self.vector_index("heldout"))
 
+    def n_noise(self, period: str = "fit") -> int:
+        """Points of ``period`` whose whitened residual is measurement noise: the vector's
+        length less the rate controls (sigma from the rate), whose residual is 0 while the well
+        makes its rate. The chi-square mean of a model that fits ``period`` within noise."""
+        idx = self.vector_index(period)
+        return int(np.count_nonzero(self.rows.sigma_source.to_numpy()[idx] != "rate"))
+
 
 def _segments(df: pd.DataFrame, q: str) -> list[tuple[str, pd.Index]]:
     """Noise segments of quantity ``q``: parts of each well's series with one noise level."""
@@ -540,10 +547,12 @@ def analyse_residuals(obs_set: ObservationSet, responses: pd.DataFrame) -> dict:
                                   "text": _timing_text(well, kind, e)})
     rf = obs_set.residual_vector(responses, "fit")
     rh = obs_set.residual_vector(responses, "heldout") if obs_set.n_heldout else np.zeros(0)
-    summary = {"n_fit": int(rf.size), "ssr_fit": float(rf @ rf),
-               "chi2_per_point_fit": float(rf @ rf / max(rf.size, 1)),
+    m_fit, m_ho = obs_set.n_noise("fit"), obs_set.n_noise("heldout")
+    summary = {"n_fit": int(rf.size), "ssr_fit": float(rf @ rf), "n_fit_measured": m_fit,
+               "chi2_per_measured_point_fit": float(rf @ rf / max(m_fit, 1)),
                "n_heldout": int(rh.size), "ssr_heldout": float(rh @ rh),
-               "chi2_per_point_heldout": float(rh @ rh / rh.size) if rh.size else None,
+               "n_heldout_measured": m_ho,
+               "chi2_per_measured_point_heldout": float(rh @ rh / m_ho) if m_ho else None,
                "n_flags": len(flags), "history_end_days": obs_set.history_end_days}
     return {"wells": wells, "breakthrough": timing, "flags": flags, "summary": summary,
             "noise": {"rho": obs_set.rho, "estimation": obs_set.noise_report}}
