@@ -19,8 +19,8 @@ from typing import Any, Optional
 from prefect import flow, get_run_logger
 
 from hmcore.diagnosis import Diagnosis, DiagnosisSettings
-from storage import sha256_json
-from tasks.case import prepare_deck, validate_case
+from storage import ArtifactStore, sha256_json
+from tasks.case import fingerprint_differences, prepare_deck, validate_case
 from tasks.diagnose import simulate_values, store_step
 from tasks.results import report as campaign_report
 
@@ -59,19 +59,17 @@ def campaign_start(store, name: str, case: str | None = None) -> tuple[str, dict
     of the case file, deck, includes and history) is refused: the best parameters belong to
     the campaign's case. LookupError when the campaign has no archived best."""
     from hmcore.case import BUILTIN_CASES, load_case
-    from tasks.case import case_fingerprint
+    from tasks.case import fingerprint_differences
 
     best, stored = store.latest(name, "best"), store.latest(name, "case")
     if best is None or stored is None:
         raise LookupError(f"no archived best case of campaign '{name}' in {store.root}: run "
                           f"`hmflow run --campaign {name}` first")
-    inputs = stored.manifest.get("inputs", {})
-    own = str(inputs.get("case"))
+    own = str(stored.manifest.get("inputs", {}).get("case"))
     if own not in BUILTIN_CASES:  # a path as given then, maybe relative to another folder
         own = stored.read_json("case.json")["source"]
     case = case or own
-    given = case_fingerprint(load_case(case))
-    differ = sorted(k for k, v in given.items() if inputs.get(k) != v)
+    differ = fingerprint_differences(stored, load_case(case))
     if differ:
         raise ValueError(f"campaign '{name}' was calibrated on the case {own}; the case {case} "
                          f"differs from it ({', '.join(differ)}): its best parameters belong to "
@@ -105,7 +103,12 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
     storage = str(Path(storage).resolve())
     loaded = validate_case(case)
     campaign = campaign or default_campaign_name(loaded.name)
-    case_version = prepare_deck(loaded, case, storage, campaign)
+    stored = ArtifactStore(storage).latest(campaign, "case")
+    if stored is not None and not fingerprint_differences(stored, loaded):
+        case_version = stored  # a campaign's own case (--from-campaign): no new version, so
+        # that the campaign still resumes under the case artifact it is bound to
+    else:
+        case_version = prepare_deck(loaded, case, storage, campaign)
     run_root = Path(storage) / campaign / "diagnosis-runs"
     counter = itertools.count()
     lock = threading.Lock()

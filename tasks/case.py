@@ -28,6 +28,13 @@ def case_fingerprint(case: Case) -> dict:
             "observed": file_sha256(case.observed_path)}
 
 
+def fingerprint_differences(version: ArtifactVersion, case: Case) -> list[str]:
+    """Which of ``case``'s input hashes (:func:`case_fingerprint`) differ from those a stored
+    ``case`` artifact version was made from (empty: the same case)."""
+    inputs = version.manifest.get("inputs", {})
+    return sorted(k for k, v in case_fingerprint(case).items() if inputs.get(k) != v)
+
+
 @task(name="validate-case", cache_policy=NO_CACHE)
 def validate_case(case_ref: str) -> Case:
     """Load and validate the case (deck, history, parameters); no simulator time is spent."""

@@ -87,3 +87,27 @@ def test_diagnose_on_a_bad_case_or_a_missing_campaign_fails_before_any_simulatio
                  cwd=tmp_path)
     assert run.returncode == 2 and "no archived best case of campaign 'nope'" in run.stderr
     assert not (tmp_path / "hmflow-storage").exists() and not (tmp_path / "store").exists()
+
+
+def test_diagnose_from_a_campaign_goes_into_its_report_and_the_campaign_still_resumes(tmp_path):
+    """`hmflow run` on a case file -> `hmflow diagnose --from-campaign` (its best, its case, no
+    new case version) -> `hmflow run` resumes the same campaign; its report holds both parts
+    (real OPM, real Prefect, real files)."""
+    from hmcore.synthetic import ensure_synthetic_case
+
+    shutil.copytree(Path(ensure_synthetic_case()).parent, tmp_path / "syn")
+    args = ("--case", "syn/case.toml", "--agent", "random", "--seed", "1", "--workers", "2",
+            "--campaign", "rel")
+    run = hmflow("run", "--budget", "3", *args, cwd=tmp_path)
+    assert run.returncode == 0, run.stdout + run.stderr
+    diag = hmflow("diagnose", "--from-campaign", "rel", cwd=tmp_path, timeout=1200)
+    assert diag.returncode == 0, diag.stdout + diag.stderr
+    campaign = tmp_path / "hmflow-storage" / "rel"
+    assert [p.name for p in (campaign / "case").glob("v*")] == ["v0001"]  # the campaign's own
+    assert (campaign / "diagnosis-report").is_dir()
+    report = sorted((campaign / "report").glob("v*/report.md"))[-1].read_text()
+    assert "## Best case" in report and "## Diagnosis of case `synthetic`" in report
+    again = hmflow("run", "--budget", "4", *args, cwd=tmp_path)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert "resuming campaign rel: 3 calls already journaled" in again.stdout + again.stderr
+    assert len(list((campaign / "evaluations").glob("*.json"))) == 4
