@@ -19,7 +19,7 @@ from typing import Any, Optional
 from prefect import flow, get_run_logger
 
 from hmcore.diagnosis import Diagnosis, DiagnosisSettings
-from storage import ArtifactStore, sha256_json
+from storage import sha256_json
 from tasks.case import fingerprint_differences, prepare_deck, validate_case
 from tasks.diagnose import simulate_values, store_step
 from tasks.results import report as campaign_report
@@ -59,7 +59,6 @@ def campaign_start(store, name: str, case: str | None = None) -> tuple[str, dict
     of the case file, deck, includes and history) is refused: the best parameters belong to
     the campaign's case. LookupError when the campaign has no archived best."""
     from hmcore.case import BUILTIN_CASES, load_case
-    from tasks.case import fingerprint_differences
 
     best, stored = store.latest(name, "best"), store.latest(name, "case")
     if best is None or stored is None:
@@ -103,12 +102,7 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
     storage = str(Path(storage).resolve())
     loaded = validate_case(case)
     campaign = campaign or default_campaign_name(loaded.name)
-    stored = ArtifactStore(storage).latest(campaign, "case")
-    if stored is not None and not fingerprint_differences(stored, loaded):
-        case_version = stored  # a campaign's own case (--from-campaign): no new version, so
-        # that the campaign still resumes under the case artifact it is bound to
-    else:
-        case_version = prepare_deck(loaded, case, storage, campaign)
+    case_version = prepare_deck(loaded, case, storage, campaign)
     run_root = Path(storage) / campaign / "diagnosis-runs"
     counter = itertools.count()
     lock = threading.Lock()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -43,8 +44,16 @@ def validate_case(case_ref: str) -> Case:
 
 @task(name="prepare-deck", cache_policy=NO_CACHE)
 def prepare_deck(case: Case, case_ref: str, store_root: str, campaign: str) -> ArtifactVersion:
-    """Store the case as run: neutral per-run deck, case file, history, settings and hashes."""
+    """Store the case as run: neutral per-run deck, case file, history, settings and hashes.
+
+    The latest version is reused when it was made from the same files (whatever path or name
+    the case was given by this time) by the same code, so that a campaign stays bound to one
+    case artifact (a diagnosis ``--from-campaign`` names the case by its absolute path)."""
     store = ArtifactStore(store_root)
+    latest = store.latest(campaign, "case")
+    if (latest is not None and latest.manifest.get("code_version") == code_version()
+            and not fingerprint_differences(latest, case) and not latest.verify()):
+        return dataclasses.replace(latest, reused=True)
 
     def write(directory: Path) -> None:
         prepare_run_deck(case.deck, {}, case.space, directory / "deck", case.info)
