@@ -3,12 +3,14 @@
     python benchmarks/bench_diagnosis.py --case synthetic --kinds all --seeds 11 12 \\
         --controls 6 7 [--workers 2] [--json out.json]
     python benchmarks/bench_diagnosis.py --case punq --kinds all --seeds 21
+    python benchmarks/bench_diagnosis.py --case punq --record-end 0 --history-end 0  # as `hide`
     python benchmarks/bench_diagnosis.py --case punq-real        # PUNQ-S3's measured history
 
 For each (kind, seed) a case is written whose truth hides one extension drawn by the seed
 (:mod:`hmcore.diagnosis.hidden`): the synthetic case (seeded fields and noise, the known
 five-parameter truth) or PUNQ-S3 (truth run of PUNQS3.DATA with the effect applied, PUNQ-style
-AR(1) noise, no sigma in the CSV, record to day 2936, fitted to day 2200). The diagnosis runs on
+AR(1) noise, no sigma in the CSV, record to day 2936, fitted to day 2200; ``--record-end 0
+--history-end 0``: `hmflow hide`'s defaults, the whole schedule, 75 % of it fitted). The diagnosis runs on
 the base model, ``workers`` simulations at a time, and is judged by
 :func:`hmcore.diagnosis.hidden.judge`: right kind (and well / layer / plane) ranked first,
 selected, held-back misfit improved. Controls hide nothing and must report ``none``.
@@ -32,7 +34,8 @@ PUNQ_TRUTH = {"poro_mult": 1.0, "permx_mult": 1.0, "permy_mult": 1.0, "permz_mul
               "skin": 5.0}
 
 
-def one(case: str, kind: str | None, seed: int, root: Path, workers: int) -> dict:
+def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
+        history_end: float = 2200.0, record_end: float = 2936.0) -> dict:
     from hmcore.case import load_case
     from hmcore.diagnosis import diagnose, local_evaluator
     from hmcore.diagnosis.hidden import (judge, write_hidden_deck_case,
@@ -43,9 +46,14 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int) -> dic
     if case == "synthetic":
         toml, effect = write_hidden_synthetic_case(tmp / "case", seed, kind)
     elif case == "punq":
+        from hmcore.deck_info import DeckInfo
+
+        end = record_end or DeckInfo.inspect(PUNQ / "PUNQS3.DATA").end_days
         toml, effect = write_hidden_deck_case(tmp / "case", PUNQ / "PUNQS3.DATA", seed,
-                                              truth=PUNQ_TRUTH, kind=kind, history_end_days=2200,
-                                              with_sigma=False, end_days=2936, name="punq-hidden")
+                                              truth=PUNQ_TRUTH, kind=kind,
+                                              history_end_days=history_end or round(0.75 * end),
+                                              with_sigma=False, end_days=record_end or None,
+                                              name="punq-hidden")
     else:
         tmp.mkdir(parents=True, exist_ok=True)
         toml = tmp / "case.toml"
@@ -82,6 +90,10 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--root", type=Path)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--history-end", type=float, default=2200.0,
+                    help="punq: days fitted (0: 75 %% of the record, as `hmflow hide`)")
+    ap.add_argument("--record-end", type=float, default=2936.0,
+                    help="punq: last day of the measured record (0: the schedule's end)")
     args = ap.parse_args()
     kinds = list(KINDS) if args.kinds == ["all"] else args.kinds
     root = args.root or Path(tempfile.mkdtemp(prefix="hmflow-bench-diagnosis-"))
@@ -90,7 +102,8 @@ def main() -> None:
     rows = []
     for kind, seed in jobs:
         try:
-            row = one(args.case, kind, seed, root, args.workers)
+            row = one(args.case, kind, seed, root, args.workers, args.history_end,
+                      args.record_end)
         except Exception as exc:  # report and go on: a sweep is a measurement
             row = {"case": args.case, "kind": kind or "control", "seed": seed,
                    "error": f"{type(exc).__name__}: {exc}", "found": False}

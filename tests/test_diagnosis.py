@@ -654,6 +654,27 @@ def test_restart_choice_takes_the_best_fits_and_every_tie_beyond_noise():
     assert restart_choice({k: 430.0 + k for k in range(6)}, 476.7, s) == [0, 1, 2, 3]
 
 
+def test_veto_restart_choice_takes_the_vetoed_fits_that_could_still_win():
+    """PUNQ-S3 with a box around PRO-4 x3.5 hidden: the box fitted best (SSR 393.7, base 511.0)
+    but predicted the held-back history worse than the base, the skin of PRO-4 fitted 409.6
+    and the held-back history confirmed it; no global was at a bound. The box is restarted from
+    the deck's values, the confirmed skin is not; a vetoed fit that could not outrank the
+    confirmed one (beyond the tie band) or that is within noise of the base is not either."""
+    from hmcore.diagnosis.diagnose import DiagnosisSettings, veto_restart_choice
+
+    s = DiagnosisSettings()
+    warm = {0: 409.6, 1: 393.7, 2: 418.0, 3: 425.0, 4: 500.0}
+    ok = {0: True, 1: False, 2: False, 3: False, 4: False}
+    # 2 is within the tie band of the confirmed 409.6, 3 is beyond it, 4 within noise of 511
+    assert veto_restart_choice(warm, ok, 511.0, s) == [1, 2]
+    # nothing confirmed: every vetoed fit beyond noise, best first, at most restart_max
+    assert veto_restart_choice(warm, {}, 511.0, s) == [1, 0, 2, 3]
+    assert veto_restart_choice(warm, {}, 511.0, DiagnosisSettings(restart_max=2)) == [1, 0]
+    # every fit confirmed, or none beyond noise: no restart
+    assert veto_restart_choice(warm, dict.fromkeys(warm, True), 511.0, s) == []
+    assert veto_restart_choice(warm, ok, 405.0, s) == []
+
+
 def test_the_held_back_history_has_the_last_word_in_the_ranking(tmp_path):
     """Of the recalibrated candidates that fit beyond noise, one the held-back history
     confirms ranks above (and is selected over) one that fits the fitted history better but

@@ -44,11 +44,14 @@ right plane ranks first, the held-back whitened SSR drops 699 -> 462 but the hel
 0.00315 -> 0.00322, so it is not selected)."""
 FLOW_CASE = ("well_skin", 1)
 PUNQ_DEFAULT = ("regional_permeability", 2)
-"""Missed on 2026-11-22 and again on 2026-11-24 (7.3 min): well_skin:PRO-4 ranks above the
-hidden regional box around PRO-4 (chi2 91 vs 48); recalibrated, the box fits better (SSR 393.7
-vs 409.6, base 511.0) but predicts the held-back history worse (SSR 1148 vs the base's 813; the
+"""Missed on 2026-11-22 and 2026-11-24 (7.3 min): well_skin:PRO-4 ranks above the hidden
+regional box around PRO-4 (chi2 91 vs 48); recalibrated, the box fits better (SSR 393.7 vs
+409.6, base 511.0) but predicts the held-back history worse (SSR 1148 vs the base's 813; the
 skin 701): the calibration left the globals far from the truth (poro 0.86, permy 1.81, permz
-0.53) but not at their bounds, so no restart from the deck's values. Runs in the slow sweep. The PUNQ-S3
+0.53) but not at their bounds, so no restart from the deck's values. Found since the second
+session of 2026-11-24 (4.9 min, 152 simulations): a best fit the held-back history vetoes is
+restarted from the deck's values too; the restart ends at SSR 394.2 with the globals at the
+deck's values (prior 0.0), held-back SSR 131, held-back E 0.0551 -> 0.0077. The PUNQ-S3
 sweep (seed 21, every kind) of 2026-11-22 found regional_permeability (PRO-12) and well_skin
 (PRO-4); on 2026-11-23, with the restart from the deck's values and up to 6 recalibrated
 candidates, also aquifer_strength AQUCT 1 x5.28 (was: aquifer 2 first; now value 4.80,

@@ -14,8 +14,9 @@ artifacts; :func:`diagnose` runs them all):
    parameter each), warm-started at the calibrated point with the linear model's step;
 5. ``recalibrate``- the extended models recalibrated together (lockstep LM, Broyden Jacobian
    updates), restarted from the deck's values when the calibration left globals at their
-   bounds; the gain on the fitted AND the held-back history; an extension is selected only
-   when its held-back misfit improves beyond noise. The causes are ranked: recalibrated
+   bounds or the held-back history vetoes the best fits; the gain on the fitted AND the
+   held-back history; an extension is selected only when its held-back misfit improves beyond
+   noise. The causes are ranked: recalibrated
    candidates that lower the fitted misfit beyond noise, those the held-back history
    confirms first (by fitted SSR; fits within ``tie_band`` ordered by held-back SSR), then
    the rest of them, then ``none`` and what stays within noise;
@@ -128,6 +129,9 @@ class DiagnosisSettings:
     PUNQ-S3, a baffle in layer 2: warm fits 431.9, 432.1, 434.1 and the hidden layer 438.0)."""
     restart_max: int = 4
     """At most this many restarts (each costs about 20 runs)."""
+    restart_on_veto: bool = True
+    """Also restart, when no global is at its bound, the recalibrated candidates that fit
+    beyond noise but that the held-back history vetoes (see :func:`veto_restart_choice`)."""
     restart_grid: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
     """Candidate values (scaled coordinates) tried with the globals at the deck's values before
     each restart; the best (or the candidate's recalibrated value) starts it."""
@@ -623,12 +627,14 @@ class Diagnosis:
                  coords: list[Coordinates]) -> dict[str, dict]:
         """Recalibrate the best candidates (:func:`restart_choice`) again from the base model as
         given, when the calibration left global parameters at (within ``near_bound`` of) their
-        bounds.
+        bounds; otherwise (``restart_on_veto``) the best fits that the held-back history vetoes
+        (:func:`veto_restart_choice`).
 
         A global at its bound has absorbed what it could of a missing effect; with the right
         extension its best value is usually back inside, but the warm-started recalibration
-        starts in the absorbed basin and its linear model points along the bound. The restart
-        puts the globals at the deck's values, tries the candidate alone there
+        starts in the absorbed basin and its linear model points along the bound. A fit that
+        the held-back history vetoes has often stayed in such a basin without a bound. The
+        restart puts the globals at the deck's values, tries the candidate alone there
         (``restart_grid`` and its recalibrated value: does the extension alone explain the data
         on the model as given?) and from the best of those minimises the fitted SSR plus a
         prior on the globals (``restart_prior_sd``), fresh finite-difference Jacobian.
@@ -645,13 +651,29 @@ class Diagnosis:
         s = self.settings
         at_bound = [n for n, u in zip(self.coords.names, self.u_base)
                     if abs(u) >= 1.0 - s.near_bound]
-        if not ids or not at_bound:
+        if not ids or (not at_bound and not s.restart_on_veto):
             return {}
         by_id = {c.id: c for c in self.candidates}
         warm = {k: min([x.best for x in (m, refined.get(k)) if x is not None and x.best is not None],
                        key=lambda b: b.ssr, default=None) for k, m in enumerate(minimisers)}
-        chosen = restart_choice({k: w.ssr for k, w in warm.items() if w is not None},
-                                self.base.ssr_fit, s)
+        warm_ssr = {k: w.ssr for k, w in warm.items() if w is not None}
+        if at_bound:
+            chosen = restart_choice(warm_ssr, self.base.ssr_fit, s)
+            trigger = f"globals {at_bound} were at their bounds"
+        else:
+            base_sc = self._scores(self.base)
+            n_ho = self.obs.n_noise("heldout")
+
+            def confirms(k: int) -> bool:
+                run = warm[k].payload
+                return heldout_confirms(base_sc["ssr_heldout"], run.ssr_heldout,
+                                        base_sc["E_heldout"], self._scores(run)["E_heldout"],
+                                        n_ho, s)[0]
+
+            chosen = veto_restart_choice(warm_ssr, {k: confirms(k) for k in warm_ssr},
+                                         self.base.ssr_fit, s)
+            trigger = ("the best fit(s) " + ", ".join(ids[k] for k in chosen)
+                       + " predict the held-back history no better than the calibrated model")
         if not chosen:
             return {}
         start_globals = self.coords.to_u(self.default_start())
@@ -663,7 +685,7 @@ class Diagnosis:
                 return {}
             settings = dataclasses.replace(settings, max_evaluations=min(
                 settings.max_evaluations, per))
-        self.log(f"restart from the deck's values: globals {at_bound} were at their bounds")
+        self.log(f"restart from the deck's values: {trigger}")
         # the candidate alone on the model as given: a grid over its range (and its
         # recalibrated value); the best point starts the restart
         jobs, tags = [], []
@@ -713,7 +735,7 @@ class Diagnosis:
             grid = [{"value": run.values[by_id[cid].name], "ssr_fit": run.ssr_fit}
                     for (j, _), run in zip(tags, grid_runs) if j == k]
             rec = {"minimiser": r, "runs": r.n_evaluations + len(grid), "grid": grid,
-                   "globals_at_bounds": at_bound, "ssr_fit_warm": w.ssr,
+                   "globals_at_bounds": at_bound, "trigger": trigger, "ssr_fit_warm": w.ssr,
                    "prior_warm": float(prior(w.u) @ prior(w.u)), "accepted": False}
             if r.best is not None:
                 run = r.best.payload
@@ -1005,6 +1027,24 @@ def restart_choice(warm_ssr: dict[int, float], base_ssr: float,
     return [k for j, k in enumerate(order) if j < s.restart_top or (
         warm_ssr[k] <= best + s.tie_band and base_ssr - warm_ssr[k] > s.fit_threshold)
             ][: max(s.restart_max, s.restart_top)]
+
+
+def veto_restart_choice(warm_ssr: dict[int, float], heldout_ok: dict[int, bool],
+                        base_ssr: float, s: DiagnosisSettings) -> list[int]:
+    """Which warm-started recalibrations (index -> fitted SSR of the best point; whether the
+    held-back history confirms it) to restart from the deck's values when no global is at its
+    bound: those that fit beyond noise (beat ``base_ssr`` by more than ``s.fit_threshold``)
+    but that the held-back history vetoes, and only while they could still outrank the best
+    confirmed fit (within ``s.tie_band`` of it or better); at most ``s.restart_max``, best
+    fits first. A fit the held-back history vetoes has usually settled in a basin the globals
+    made (PUNQ-S3, a box around PRO-4 x3.5: the globals went to poro 0.86, permy 1.81, permz
+    0.53, none at a bound; the box fitted best and predicted worst)."""
+    order = sorted(warm_ssr, key=lambda k: warm_ssr[k])
+    confirmed = [warm_ssr[k] for k in order if heldout_ok.get(k)
+                 and base_ssr - warm_ssr[k] > s.fit_threshold]
+    ceiling = confirmed[0] + s.tie_band if confirmed else math.inf
+    return [k for k in order if not heldout_ok.get(k) and base_ssr - warm_ssr[k] > s.fit_threshold
+            and warm_ssr[k] <= ceiling][: s.restart_max]
 
 
 def heldout_noise_line(n_heldout: int, s: DiagnosisSettings) -> float:
