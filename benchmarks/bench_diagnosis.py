@@ -64,11 +64,11 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
     doc = diagnose(load_case(toml), local_evaluator(tmp / "runs", workers), out_dir=tmp / "out")
     wall = time.perf_counter() - t0
     shutil.rmtree(tmp / "runs", ignore_errors=True)
-    out = judge(doc, effect) if case != "punq-real" else {
-        "ranking": [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:5]
-                    if c["chi2"] is not None], "verdict": doc["verdict"], "gain": doc["gain"]}
     signal = (json.loads((tmp / "case" / "hidden_effect.json").read_text()).get("signal")
               if case != "punq-real" else None) or {}
+    out = judge(doc, effect, signal) if case != "punq-real" else {
+        "ranking": [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:5]
+                    if c["chi2"] is not None], "verdict": doc["verdict"], "gain": doc["gain"]}
     out.update({"signal_fit": signal.get("chi2_fit"), "signal_heldout": signal.get("chi2_heldout"),
                 "signal_fit_after_globals": signal.get("chi2_fit_after_globals"),
                 "visible": signal.get("visible_in_fitted_history")})

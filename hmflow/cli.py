@@ -438,7 +438,8 @@ def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json
             raise typer.Exit(2)
     effect = load_hidden_effect(hidden)
     doc = json.loads(diagnosis.read_text())
-    j = judge(doc, effect)
+    signal = json.loads(hidden.read_text()).get("signal")
+    j = judge(doc, effect, signal)
     if effect is None:
         console.print("hidden: nothing (a control)")
     else:
@@ -449,8 +450,14 @@ def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json
     console.print(f"selected: {doc['selected']['id'] if doc['selected'] else 'none'}")
     console.print(f"ranking: {', '.join(j['ranking'])}")
     g = doc["gain"]
-    console.print(f"held-back E {_num(g['heldout_before'], 5)} -> {_num(g['heldout_after'], 5)}")
-    signal = json.loads(hidden.read_text()).get("signal")
+    console.print(f"held-back E {_num(g['heldout_before'], 5)} -> {_num(g['heldout_after'], 5)}"
+                  + (f" (the truth itself: {_num(j['truth_E_heldout'], 5)})"
+                     if j.get("truth_E_heldout") is not None else ""))
+    if j.get("heldout_improved") and not j.get("heldout_E_improved"):
+        console.print("  the truth scores no better held-back E than the calibrated model: the "
+                      "noise decides E there, so the noise-weighted held-back misfit counts "
+                      f"(whitened SSR {_num(g['ssr_heldout_before'], 0)} -> "
+                      f"{_num(g['ssr_heldout_after'], 0)})", highlight=False)
     if signal:
         console.print(f"signal of the hidden effect: {_signal_text(signal)}", highlight=False)
     checks = ("ranked_first", "selected", "heldout_improved")

@@ -443,6 +443,14 @@ def test_a_candidate_under_the_line_is_confirmed_by_its_recalibration(tmp_path):
     (226.7, 240.0, 0.004806, 0.004439, 352, False, True),  # spoils it beyond noise
     (226.7, 220.0, 0.004806, 0.004900, 352, False, True),  # E worse
     (226.7, 220.0, 0.004806, 0.004000, 0, False, False),   # nothing held back
+    # PUNQ-S3, aquifer 2 x9.2 hidden (whole schedule): E rises for the truth itself (noisy
+    # water and gas rates dominate it), the whitened SSR drops decisively: confirmed
+    (1989.8, 702.6, 0.00789, 0.00889, 282, True, False),
+    # E rises and the SSR drop (53) is under 3 sd of the chi-square of 400 points (85)
+    (813.0, 760.0, 0.010, 0.011, 400, False, False),
+    # a decisive drop, but E rises by more than a quarter (a wrong fix of the BHP that
+    # spoils the rates: synthetic, a box around PROD4 for a fault, E 0.0244 -> 0.0397)
+    (1939.0, 1700.0, 0.02443, 0.03973, 300, False, False),
 ])
 def test_held_back_confirmation_rule(before, after, e_before, e_after, n, ok, quiet):
     from hmcore.diagnosis.diagnose import DiagnosisSettings, heldout_confirms
@@ -707,3 +715,31 @@ def test_the_held_back_history_has_the_last_word_in_the_ranking(tmp_path):
     doc = d.decide()
     assert doc["causes"][0]["id"] == best_fit and doc["selected"] is None
     assert doc["verdict"].startswith(f"rejected {best_fit}")
+
+
+def test_judge_counts_the_whitened_held_back_misfit_only_where_the_truth_cannot_lower_e():
+    """A found effect must lower the held-back E - unless the truth itself scores no better
+    held-back E than the calibrated base (the noise decides E there: PUNQ-S3, aquifer 2 x9.2,
+    truth 0.00876 against the base's 0.00789); then the whitened held-back SSR must drop."""
+    from hmcore.diagnosis.extensions import Candidate
+    from hmcore.diagnosis.hidden import HiddenEffect, judge
+
+    par = Parameter(name="aquifer_perm2", kind="item_multiply", low=0.05, high=20.0,
+                    keywords=("AQUCT",), item=4, match="2")
+    cand = Candidate(id="aquifer_strength:AQUCT:4:2", kind="aquifer_strength", parameter=par)
+    effect = HiddenEffect(cand, 9.16)
+    first = {"kind": "aquifer_strength", "wells": [], "layers": [], "id": cand.id, "chi2": 233.0}
+    gain = {"fit_before": 0.00172, "fit_after": 0.00137, "heldout_before": 0.00789,
+            "heldout_after": 0.00889, "ssr_heldout_before": 1989.8, "ssr_heldout_after": 702.6}
+    doc = {"causes": [first], "selected": {"id": cand.id}, "gain": gain, "verdict": "accepted"}
+    j = judge(doc, effect, {"truth_E_heldout": 0.00876})
+    assert j["found"] and j["heldout_improved"] and not j["heldout_E_improved"]
+    # the truth does better than the base on E: E must drop, and it rose
+    assert not judge(doc, effect, {"truth_E_heldout": 0.0070})["found"]
+    assert not judge(doc, effect)["found"]  # no signal recorded: E alone
+    # E cannot tell, but the whitened misfit rose too
+    worse = {**doc, "gain": {**gain, "ssr_heldout_after": 2100.0}}
+    assert not judge(worse, effect, {"truth_E_heldout": 0.00876})["found"]
+    # E dropped: found, whatever the truth scores
+    better = {**doc, "gain": {**gain, "heldout_after": 0.0050}}
+    assert judge(better, effect, {"truth_E_heldout": 0.0040})["found"]

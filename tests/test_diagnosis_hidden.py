@@ -86,12 +86,18 @@ def _opm():
         pytest.skip("OPM Python packages (opm, opm-simulators) not installed")
 
 
-def assert_found(doc: dict, effect) -> None:
+def _signal(case_dir: Path) -> dict | None:
+    """The hidden effect's signal as `hide` measured it (see :func:`effect_signal`)."""
+    return json.loads((case_dir / "hidden_effect.json").read_text()).get("signal")
+
+
+def assert_found(doc: dict, effect, case_dir: Path) -> None:
     """The hidden kind (and well / layer / plane / aquifer / phase) ranks first, is selected,
-    and the held-back misfit improves (see :func:`hmcore.diagnosis.hidden.judge`)."""
+    and the held-back misfit improves (see :func:`hmcore.diagnosis.hidden.judge`; ``case_dir``
+    holds hidden_effect.json with the truth's own held-back E)."""
     from hmcore.diagnosis.hidden import judge
 
-    j = judge(doc, effect)
+    j = judge(doc, effect, _signal(case_dir))
     what = f"hidden {j['hidden']} = {j.get('value', 0):.4g}; ranked {j['ranking']}; {j['verdict']}"
     assert j["ranked_first"], what
     assert j["selected"], what
@@ -111,9 +117,9 @@ def assert_found_where_visible(doc: dict, effect, case_dir: Path) -> None:
 
     from hmcore.diagnosis.hidden import judge
 
-    signal = json.loads((case_dir / "hidden_effect.json").read_text())["signal"]
-    if signal["visible_in_fitted_history"] or judge(doc, effect)["found"]:
-        assert_found(doc, effect)  # found is right even where the signal is weak
+    signal = _signal(case_dir)
+    if signal["visible_in_fitted_history"] or judge(doc, effect, signal)["found"]:
+        assert_found(doc, effect, case_dir)  # found is right even where the signal is weak
         return
     what = f"invisible {effect.candidate.id} (signal {signal}); {doc['verdict']}"
     assert doc["causes"][0]["kind"] == "none" and doc["selected"] is None, what
@@ -164,7 +170,7 @@ def diagnose_punq(tmp: Path, kind: str, seed: int):
 def test_hidden_effect_is_found_in_the_synthetic_case(tmp_path, kind, seed):
     _opm()
     doc, effect = diagnose_synthetic(tmp_path, kind, seed)
-    assert_found(doc, effect)
+    assert_found(doc, effect, tmp_path / "case")
     assert list((tmp_path / "out").glob("residuals_*.png"))
 
 
@@ -183,7 +189,7 @@ def test_control_with_nothing_hidden_reports_none(tmp_path):
 def test_hidden_effect_is_found_in_punq_s3(tmp_path):
     _opm()
     doc, effect = diagnose_punq(tmp_path, *PUNQ_DEFAULT)
-    assert_found(doc, effect)
+    assert_found(doc, effect, tmp_path / "case")
     # the noise was estimated (the CSV has no sigma), close to the description's 3 bar
     levels = [lv["sigma"] for lv in doc["calibration"]["noise"]["WBHP"]["levels"]
               if lv["segment"] == "flowing"]
@@ -224,7 +230,7 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
                               campaign="hidden-skin", console=console)
     TIMES[f"flow-synthetic-{kind}-{seed}"] = time.perf_counter() - start
     doc = json.loads(Path(result["diagnosis_path"]).read_text())
-    assert_found(doc, effect)
+    assert_found(doc, effect, tmp_path / "case")
     store = ArtifactStore(tmp_path / "store")
     for step in STEPS:
         assert store.latest("hidden-skin", step) is not None, step

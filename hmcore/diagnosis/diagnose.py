@@ -96,6 +96,12 @@ class DiagnosisSettings:
     to confirm: the extension must then lower the held-back E and not raise the held-back SSR
     by more than this."""
     quiet_sd: float = 3.0
+    heldout_e_slack: float = 0.25
+    """When the held-back whitened SSR drops decisively (see :func:`heldout_decisive_drop`) the
+    held-back E may rise by up to this share and the held-back history still confirms: E
+    weights every point alike whatever its noise, and noisy responses can raise it for the
+    truth itself (PUNQ-S3, aquifer 2 x9.2: the truth's held-back E 11 % above the calibrated
+    base's; synthetic fault seed 12: the hidden plane +2 %)."""
     tie_band: float = 10.0
     """Recalibrated candidates whose fitted SSR is within this of the best fit the fitted
     history cannot tell apart: the held-back history orders them."""
@@ -666,14 +672,18 @@ class Diagnosis:
 
             def confirms(k: int) -> bool:
                 run = warm[k].payload
+                # plainly (E and SSR both drop): a fit whose held-back E rises is restarted
+                # even when its SSR drops decisively (PUNQ-S3, aquifer 2 x9.2: warm start +25 %
+                # held-back E, the restart +13 %, the truth +11 %)
                 return heldout_confirms(base_sc["ssr_heldout"], run.ssr_heldout,
                                         base_sc["E_heldout"], self._scores(run)["E_heldout"],
-                                        n_ho, s)[0]
+                                        n_ho, s, decisive=False)[0]
 
             chosen = veto_restart_choice(warm_ssr, {k: confirms(k) for k in warm_ssr},
                                          self.base.ssr_fit, s)
             trigger = ("the best fit(s) " + ", ".join(ids[k] for k in chosen)
-                       + " predict the held-back history no better than the calibrated model")
+                       + " do not plainly predict the held-back history better than the "
+                         "calibrated model (held-back E and SSR both lower)")
         if not chosen:
             return {}
         start_globals = self.coords.to_u(self.default_start())
@@ -881,10 +891,19 @@ class Diagnosis:
             selected = confirmed_ok[0]
         if selected is not None:
             conf = self.confirmed[selected]
+            base_ho = _per_well_heldout(self.case, self.base.responses)
             verdict = (f"accepted {selected}: {by_id[selected].description}; fitted E "
                        f"{conf['fit_before']:.4g} -> {conf['fit_after']:.4g}, held-back E "
                        f"{conf['heldout_before']:.4g} -> {conf['heldout_after']:.4g}")
-            if conf["delta_ssr_heldout"] <= s.heldout_threshold:
+            if conf["heldout_after"] >= conf["heldout_before"]:
+                rises = _worst_heldout_rises(base_ho, conf["per_well_response_heldout_after"])
+                verdict += (f" (the held-back E does not drop: it weights every point alike, "
+                            f"whatever its noise, and noisy responses dominate it there - "
+                            f"{rises}; the noise-weighted held-back misfit drops decisively, "
+                            f"whitened SSR {conf['ssr_heldout_before']:.0f} -> "
+                            f"{conf['ssr_heldout_after']:.0f}"
+                            f" over {self.obs.n_noise('heldout')} measured points)")
+            elif conf["delta_ssr_heldout"] <= s.heldout_threshold:
                 verdict += (f" (the calibrated model already fitted the held-back history "
                             f"within noise, whitened SSR {conf['ssr_heldout_before']:.0f} over "
                             f"{self.obs.n_noise('heldout')} measured points: it cannot confirm "
@@ -1032,10 +1051,11 @@ def restart_choice(warm_ssr: dict[int, float], base_ssr: float,
 def veto_restart_choice(warm_ssr: dict[int, float], heldout_ok: dict[int, bool],
                         base_ssr: float, s: DiagnosisSettings) -> list[int]:
     """Which warm-started recalibrations (index -> fitted SSR of the best point; whether the
-    held-back history confirms it) to restart from the deck's values when no global is at its
-    bound: those that fit beyond noise (beat ``base_ssr`` by more than ``s.fit_threshold``)
-    but that the held-back history vetoes, and only while they could still outrank the best
-    confirmed fit (within ``s.tie_band`` of it or better); at most ``s.restart_max``, best
+    held-back history plainly confirms it: E and SSR both lower) to restart from the deck's
+    values when no global is at its bound: those that fit beyond noise (beat ``base_ssr`` by
+    more than ``s.fit_threshold``) but that the held-back history does not plainly confirm,
+    and only while they could still outrank the best confirmed fit (within ``s.tie_band`` of
+    it or better); at most ``s.restart_max``, best
     fits first. A fit the held-back history vetoes has usually settled in a basin the globals
     made (PUNQ-S3, a box around PRO-4 x3.5: the globals went to poro 0.86, permy 1.81, permz
     0.53, none at a bound; the box fitted best and predicted worst)."""
@@ -1055,7 +1075,8 @@ def heldout_noise_line(n_heldout: int, s: DiagnosisSettings) -> float:
 
 
 def heldout_confirms(ssr_before: float, ssr_after: float, e_before: float, e_after: float,
-                     n_heldout: int, s: DiagnosisSettings) -> tuple[bool, bool]:
+                     n_heldout: int, s: DiagnosisSettings, decisive: bool = True
+                     ) -> tuple[bool, bool]:
     """Does the held-back history confirm an extension? Returns (confirmed, quiet).
 
     ``ssr_*``: whitened SSR of the held-back points (``n_heldout`` of them) before / after the
@@ -1063,13 +1084,31 @@ def heldout_confirms(ssr_before: float, ssr_after: float, e_before: float, e_aft
     ``s.heldout_threshold``; or, when the calibrated model already fits the held-back points
     within noise (``quiet``: SSR at most the chi-square mean + ``s.quiet_sd`` standard
     deviations, so they hold no signal to explain), E drops and the SSR does not rise by more
-    than ``s.heldout_threshold``."""
+    than ``s.heldout_threshold``; or (``decisive``) the SSR drops decisively (by more than
+    :func:`heldout_decisive_drop`) and E rises by less than ``s.heldout_e_slack``.
+
+    E weights every point alike whatever its noise, so where noisy responses dominate it (water
+    and gas rates after breakthrough, 25 % GOR errors) it can rise for the truth itself: PUNQ-S3
+    with aquifer 2's AQUCT permeability x9.2 hidden, the whole schedule, 75 % fitted - the
+    calibrated base scored held-back E 0.00789, the truth 0.00876; the recalibrated aquifer
+    (x9.13, the globals back at the deck's values) 0.00889 while the whitened held-back SSR
+    fell 1990 -> 703 over 282 measured points."""
     if n_heldout <= 0 or not (math.isfinite(e_after) and math.isfinite(ssr_after)):
         return False, False
     quiet = ssr_before <= heldout_noise_line(n_heldout, s)
     d = ssr_before - ssr_after
-    ok = e_after < e_before and (d > s.heldout_threshold or (quiet and d > -s.heldout_threshold))
+    ok = (e_after < e_before and (d > s.heldout_threshold or
+                                  (quiet and d > -s.heldout_threshold))
+          or (decisive and d > heldout_decisive_drop(n_heldout, s)
+              and e_after < e_before * (1.0 + s.heldout_e_slack)))
     return bool(ok), bool(quiet)
+
+
+def heldout_decisive_drop(n_heldout: int, s: DiagnosisSettings) -> float:
+    """A drop of the held-back whitened SSR that noise cannot make, whatever E does: more than
+    ``s.quiet_sd`` standard deviations of the chi-square of ``n_heldout`` measured points
+    (and more than ``s.heldout_threshold``)."""
+    return max(s.heldout_threshold, s.quiet_sd * math.sqrt(2.0 * n_heldout))
 
 
 @dataclass
@@ -1090,6 +1129,15 @@ def _per_well_heldout(case: Case, responses: pd.DataFrame) -> dict:
         return {}
     ha = align(held, responses, case.time_tolerance_days)
     return misfit(ha.pairs, "mean", 0.0, category_ranges(case.observed)).per_well_response
+
+
+def _worst_heldout_rises(before: dict, after: dict, n: int = 3) -> str:
+    """The ``n`` largest rises of held-back E contributions (well -> response -> E) in words."""
+    rises = sorted(((a - before[w][r], w, r, before[w][r], a)
+                    for w, per in after.items() for r, a in per.items()
+                    if a is not None and before.get(w, {}).get(r) is not None
+                    and a > before[w][r]), reverse=True)[:n]
+    return ", ".join(f"{w} {r} {b:.3g} -> {a:.3g}" for _, w, r, b, a in rises) or "none"
 
 
 def _per_well_table(before: dict, before_ho: dict, after: dict | None,

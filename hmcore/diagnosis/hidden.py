@@ -307,10 +307,12 @@ def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=No
     gain of the right extension over the best five-parameter fit (the non-centrality of the
     test that names it); ``chi2_heldout_after_globals`` is that best fit's error on the
     held-back history, ``globals_absorbing`` its values. ``visible_in_fitted_history`` is
-    whether what remains reaches :data:`SIGNAL_VISIBLE`."""
+    whether what remains reaches :data:`SIGNAL_VISIBLE`. ``truth_E`` and ``truth_E_heldout``
+    are the truth's own misfit E against the noisy history (no run): a diagnosis cannot be
+    asked to bring the held-back E below what the truth scores (see :func:`judge`)."""
     from hmcore.case import load_case
     from hmcore.diagnosis.residuals import ObservationSet
-    from hmcore.evaluation import evaluate
+    from hmcore.evaluation import evaluate, score_responses
 
     case = load_case(case_toml)
     folder = Path(case_toml).parent
@@ -347,7 +349,9 @@ def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=No
         d, reason = difference(start)
         fit, held = obs.whiten(d, "fit"), obs.whiten(d, "heldout")
         chi2_fit, chi2_held = float(fit @ fit), float(held @ held)
-        out = {"chi2_fit": chi2_fit, "chi2_heldout": chi2_held, "n_fit": int(fit.size),
+        truth_score = score_responses(case, truth)
+        out = {"truth_E": truth_score["E"], "truth_E_heldout": truth_score["E_heldout"],
+               "chi2_fit": chi2_fit, "chi2_heldout": chi2_held, "n_fit": int(fit.size),
                "n_heldout": int(held.size), "n_heldout_measured": obs.n_noise("heldout"),
                "history_end_days": obs.history_end_days}
         remains = chi2_fit
@@ -378,15 +382,18 @@ def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=No
 
 
 # ----------------------------------------------------------------------------- scoring a finding
-def judge(doc: dict, effect: HiddenEffect | None) -> dict:
+def judge(doc: dict, effect: HiddenEffect | None, signal: dict | None = None) -> dict:
     """Did the diagnosis ``doc`` find the hidden ``effect`` (None: the control)?
 
     ``ranked_first``: the first cause has the hidden kind and, where the kind names one, the
     same well (well skin, regional permeability), layer (layer and vertical permeability) or
     candidate (fault plane, aquifer item, relperm table); ``selected``: the same candidate was
     accepted; ``heldout_improved``: the held-back misfit E (the issue's measure of the gain)
-    went down. For the control
-    all three mean "reported none". ``found`` = all three.
+    went down - or, when the truth itself scores a held-back E no better than the calibrated
+    base model (``signal["truth_E_heldout"]``, from :func:`effect_signal`: the noise decides E
+    there, no diagnosis can lower it with the right answer), the noise-weighted held-back misfit
+    (whitened SSR) went down; ``heldout_E_improved`` says what E did. For the control all
+    three mean "reported none". ``found`` = all three.
     """
     first = doc["causes"][0]
     top = [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:4] if c["chi2"] is not None]
@@ -404,10 +411,16 @@ def judge(doc: dict, effect: HiddenEffect | None) -> dict:
     else:
         same = same and first["id"] == h.id
     sel = doc["selected"] is not None and doc["selected"]["id"] == h.id
-    held = (g["heldout_after"] is not None and g["heldout_before"] is not None
-            and g["heldout_after"] < g["heldout_before"])
+    held_e = (g["heldout_after"] is not None and g["heldout_before"] is not None
+              and g["heldout_after"] < g["heldout_before"])
+    truth_e = (signal or {}).get("truth_E_heldout")
+    e_cannot_tell = (truth_e is not None and g["heldout_before"] is not None
+                     and truth_e >= g["heldout_before"])
+    held = held_e or (e_cannot_tell and g.get("ssr_heldout_after") is not None
+                      and g["ssr_heldout_after"] < g["ssr_heldout_before"])
     return {"hidden": h.id, "value": effect.value, "ranked_first": bool(same),
             "selected": bool(sel), "heldout_improved": bool(held),
+            "heldout_E_improved": bool(held_e), "truth_E_heldout": truth_e,
             "found": bool(same and sel and held), "ranking": top, "verdict": doc["verdict"],
             "gain": {k: g[k] for k in ("fit_before", "fit_after", "heldout_before",
                                        "heldout_after")}}
