@@ -41,7 +41,8 @@ already - aquifer_strength-11 (a Fetkovich aquifer's PI x0.05: even the truth fi
 history only 20 chi2 better than the calibrated base, the globals had absorbed it; the
 held-back data tell, the recalibration cannot get there) and fault_transmissibility-12 (the
 right plane ranks first, the held-back whitened SSR drops 699 -> 462 but the held-back E rises
-0.00315 -> 0.00322, so it is not selected)."""
+0.00315 -> 0.00322, so it is not selected; since the second session of 2026-11-24 a decisive
+held-back SSR drop confirms despite an E rise of up to 25 % - not rerun)."""
 FLOW_CASE = ("well_skin", 1)
 PUNQ_DEFAULT = ("regional_permeability", 2)
 """Missed on 2026-11-22 and 2026-11-24 (7.3 min): well_skin:PRO-4 ranks above the hidden
