@@ -46,12 +46,9 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
     if case == "synthetic":
         toml, effect = write_hidden_synthetic_case(tmp / "case", seed, kind)
     elif case == "punq":
-        from hmcore.deck_info import DeckInfo
-
-        end = record_end or DeckInfo.inspect(PUNQ / "PUNQS3.DATA").end_days
         toml, effect = write_hidden_deck_case(tmp / "case", PUNQ / "PUNQS3.DATA", seed,
                                               truth=PUNQ_TRUTH, kind=kind,
-                                              history_end_days=history_end or round(0.75 * end),
+                                              history_end_days=history_end or None,
                                               with_sigma=False, end_days=record_end or None,
                                               name="punq-hidden")
     else:

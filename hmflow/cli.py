@@ -399,10 +399,8 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
             text = case_toml.read_text().replace('name = "synthetic"', f'name = "{out.name}"', 1)
             case_toml.write_text(text)
         else:
-            end = info.end_days if record_end is None else record_end
-            he = history_end if history_end is not None else round(0.75 * end)
             case_toml, effect = write_hidden_deck_case(
-                out, deck, seed, truth=truth, effect=effect, history_end_days=he,
+                out, deck, seed, truth=truth, effect=effect, history_end_days=history_end,
                 with_sigma=sigma, name=out.name, end_days=record_end)
     except ValueError as exc:
         if created:  # leave nothing half-written behind

@@ -145,7 +145,8 @@ def diagnose_synthetic(tmp: Path, kind: str | None, seed: int):
     return doc, effect
 
 
-def diagnose_punq(tmp: Path, kind: str, seed: int, *, history_end: float = PUNQ_HISTORY_END,
+def diagnose_punq(tmp: Path, kind: str, seed: int, *,
+                  history_end: float | None = PUNQ_HISTORY_END,
                   record_end: float | None = PUNQ_RECORD_END):
     from hmcore.case import load_case
     from hmcore.diagnosis import diagnose, local_evaluator
@@ -207,7 +208,7 @@ def test_hidden_effect_is_found_in_punq_s3_where_the_truth_cannot_lower_held_bac
     the calibrated base's 0.00789: noisy water and gas rates dominate E there). Found since
     2026-11-24 (5.2 min, 196 simulations); before, layer 2 was named."""
     _opm()
-    doc, effect = diagnose_punq(tmp_path, *PUNQ_WHOLE_SCHEDULE, history_end=round(0.75 * 6025),
+    doc, effect = diagnose_punq(tmp_path, *PUNQ_WHOLE_SCHEDULE, history_end=None,
                                 record_end=None)
     assert_found(doc, effect, tmp_path / "case")
     assert "the held-back E does not drop" in doc["verdict"]

@@ -233,8 +233,8 @@ def noisy_history(truth: pd.DataFrame, rng: np.random.Generator, noise: dict | N
 
 def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str, float],
                            space: ParameterSpace | None = None, kind: str | None = None,
-                           effect: HiddenEffect | None = None, history_end_days: float,
-                           with_sigma: bool = True, name: str = "hidden",
+                           effect: HiddenEffect | None = None,
+                           history_end_days: float | None = None, with_sigma: bool = True, name: str = "hidden",
                            end_days: float | None = None,
                            simulator=None) -> tuple[Path, HiddenEffect | None]:
     """A case on ``deck`` whose measured data hide ``effect`` (or one drawn of ``kind``).
@@ -242,7 +242,8 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
     ``truth``: values of the calibration ``space`` (default: the reference five) in the truth.
     Writes ``observed.csv``, ``truth_responses.csv``, ``hidden_effect.json`` and ``case.toml``
     (deck given by absolute path) into ``dest``; returns (case.toml, effect). ``end_days``
-    ends the measured record (default: the end of the schedule).
+    ends the measured record (default: the end of the schedule); ``history_end_days`` ends
+    the fitted history (default: 75 % of the record).
     """
     from hmcore.deck import prepare_run_deck
     from hmcore.responses import read_responses
@@ -252,6 +253,8 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
     dest.mkdir(parents=True, exist_ok=True)
     deck = Path(deck).resolve()
     info = DeckInfo.inspect(deck)
+    if history_end_days is None:
+        history_end_days = round(0.75 * (info.end_days if end_days is None else end_days))
     space = space or ParameterSpace.reference()
     if effect is None and kind is not None:
         effect = draw_effect(kind, seed, info, space, truth)
