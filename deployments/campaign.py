@@ -121,9 +121,9 @@ def _apply(deployment, work_pool: str) -> UUID:
     """Register ``deployment`` (a RunnerDeployment from ``flow.to_deployment``) on ``work_pool``.
 
     This is what ``Flow.deploy`` does for a flow from local source, minus its console output and
-    its listing of the pool's online workers: with the fastapi (0.154) installed beside
-    prefect 3.8.8 that listing is refused by the server (HTTP 422, the client sends
-    ``"limit": null``), which makes ``Flow.deploy`` fail before anything is deployed."""
+    its listing of the pool's online workers (with fastapi 0.151 or later beside prefect 3.8.8
+    that listing is refused with HTTP 422 - the client sends ``"limit": null`` - which made
+    ``Flow.deploy`` fail before anything was deployed; fastapi is now pinned below 0.151)."""
     ensure_work_pool(work_pool)
     return deployment.apply(work_pool_name=work_pool)
 

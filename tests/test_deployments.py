@@ -201,8 +201,9 @@ def _run(deployment: str, worker: dict, timeout: int = RUN_TIMEOUT_S):
 
 
 def _artifacts_of(flow_run_id) -> list:
-    """Artifacts of a flow run. Every filter, sort, limit and offset is given: with fastapi 0.154
-    the server refuses the nulls that ``read_artifacts()`` sends for the ones left out (422)."""
+    """Artifacts of a flow run. Every filter, sort, limit and offset is given: with fastapi 0.151
+    or later the server refuses the nulls that ``read_artifacts()`` sends for the ones left out
+    (422); fastapi is pinned below 0.151, and the explicit query keeps working either way."""
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import (ArtifactFilter, FlowRunFilter, FlowRunFilterId,
                                                 TaskRunFilter)
