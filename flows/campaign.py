@@ -13,7 +13,7 @@ from hmcore.calibration import Job, calibrate
 from storage import ArtifactStore, EvaluationJournal
 from tasks.case import prepare_deck, validate_case
 from tasks.results import archive_best, consolidate, report
-from tasks.simulate import simulate
+from tasks.simulate import observation_set, simulate
 
 DEFAULT_STORAGE = "./hmflow-storage"
 
@@ -56,10 +56,14 @@ def campaign_flow(case: str = "synthetic", agent: str = "sac", budget: int = 200
     done = {r["index"]: r for r in journal.rows()}
     if done:
         logger.info(f"resuming campaign {campaign}: {len(done)} calls already journaled")
-    proposer = make_proposer(agent, loaded.space.dim, seed, **(agent_settings or {}))
+    proposer = make_proposer(agent, loaded.space.dim, seed, workers, budget,
+                             **(agent_settings or {}))
+    observations = (observation_set(loaded) if getattr(proposer, "needs_residuals", False)
+                    else None)
 
     def evaluate_batch(jobs: list[Job]) -> list[dict]:
-        futures = [simulate.submit(loaded, job, storage, campaign, seed, agent) for job in jobs]
+        futures = [simulate.submit(loaded, job, storage, campaign, seed, agent, observations)
+                   for job in jobs]
         return [f.result() for f in futures]
 
     calibrate(proposer, loaded.space, evaluate_batch, budget, workers, done)

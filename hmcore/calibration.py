@@ -4,7 +4,8 @@ The loop never runs the simulator itself: ``evaluate_batch(jobs) -> records`` is
 Prefect flow submits one task per job to a task runner; tests pass a plain function). Records
 already in ``done`` (a resumed campaign's journal) are replayed to the proposer instead of being
 simulated again. The last call of the budget evaluates the proposer's recommendation (for SAC,
-the deterministic policy), so the campaign ends on what the agent learned, not only on samples.
+the deterministic policy), so the campaign ends on what the agent learned, not only on samples,
+when the proposer says it is worth a call (``exploit_last``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ from typing import Callable
 
 import numpy as np
 
-from hmcore.agents.base import Feedback, Proposal, Proposer
+from hmcore.agents.base import Driver, Feedback, Proposal, Proposer
+from hmcore.agents.budget import check_replay
 from hmcore.parameters import ParameterSpace
 
 
@@ -38,33 +40,44 @@ def feedback_of(record: dict) -> Feedback:
     return Feedback(float(record["reward"]), float(e_obs), scored)
 
 
-def calibrate(proposer: Proposer, space: ParameterSpace,
+def calibrate(proposer: Proposer | Driver, space: ParameterSpace,
               evaluate_batch: Callable[[list[Job]], list[dict]], budget: int, workers: int,
-              done: dict[int, dict] | None = None, exploit_last: bool = True) -> list[dict]:
+              done: dict[int, dict] | None = None, exploit_last: bool | None = None
+              ) -> list[dict]:
     """Run ``budget`` simulator calls, ``workers`` at a time; return every record in call order.
 
-    Each record must carry ``reward``, ``E`` (NaN/None for failures) and ``penalty``.
+    Each record must carry ``reward``, ``E`` (NaN/None for failures) and ``penalty``. A
+    :class:`~hmcore.agents.base.Driver` (``sac-paper``) runs its own loop over the same
+    evaluator instead.
     """
     if budget < 1 or workers < 1:
         raise ValueError(f"budget >= 1 and workers >= 1 must hold, got budget={budget}, "
                          f"workers={workers}")
+    if isinstance(proposer, Driver):
+        return proposer.drive(space, evaluate_batch, budget, workers, done)
+    if exploit_last is None:  # the proposer says whether its recommendation is worth a call
+        exploit_last = bool(getattr(proposer, "exploit_last", False))
     done = dict(done or {})
     records: list[dict] = []
     index = 0
     while index < budget:
-        n = min(workers, budget - index)
-        proposals = proposer.ask(n)
+        # a proposer may return fewer than asked (CMA-ES at the end of a generation)
+        proposals = proposer.ask(min(workers, budget - index))
+        n = len(proposals)
+        if n < 1:
+            raise RuntimeError(f"proposer {proposer.name!r} proposed nothing at call {index}")
         phases = ["explore"] * n
         if exploit_last and index + n == budget:
             proposals[0] = Proposal(np.asarray(proposer.recommend(), np.float32),
-                                    proposals[0].observation, proposals[0].lane)
+                                    proposals[0].observation, proposals[0].lane)  # key -1
             phases[0] = "exploit"
         jobs = [Job(index + k, space.to_values(p.action), tuple(float(x) for x in p.action),
                     p.lane, phases[k]) for k, p in enumerate(proposals)]
         todo = [j for j in jobs if j.index not in done]
         fresh = {r["index"]: r for r in (evaluate_batch(todo) if todo else [])}
-        batch = [done.get(j.index) or fresh[j.index] for j in jobs]
-        told = [Proposal(np.asarray(r["action"], np.float32), p.observation, p.lane)
+        batch = [check_replay(done[j.index], j, proposer.name) if j.index in done
+                 else fresh[j.index] for j in jobs]
+        told = [Proposal(np.asarray(r["action"], np.float32), p.observation, p.lane, p.key)
                 for r, p in zip(batch, proposals)]
         proposer.tell(told, [feedback_of(r) for r in batch])
         records.extend(batch)

@@ -18,9 +18,18 @@ observed history is collected and raised together as one :class:`CaseError`::
     backend = "opm"                   # or a command template: "flow {deck} --output-dir={run_dir}"
     timeout_s = 900
 
-    [physics]                         # optional
-    perm_cap_md = 20000
+    [physics]                         # optional (defaults shown; see hmcore.physics)
+    perm_cap_md = 20000               # largest cell permeability after multipliers, mD
+    poro_max = 0.6
+    kv_kh_min = 0.001                 # per-cell kv/kh range ...
+    kv_kh_max = 1.0
+    kv_kh_max_fraction = 0.10         # ... share of cells that may newly leave it
+    trend_sd = 3.0                    # distance from the deck's porosity-permeability trend ...
+    trend_max_fraction = 0.02         # ... share of cells that may newly go beyond it
+    pore_volume_change_max = 0.15     # relative change of the total pore volume
+    # pressure_min = 1.01325          # lowest simulated BHP, deck units (default 1 atm)
     failure_penalty = 10.0
+    violation_weight = 5.0            # P = weight * sum of the excesses
 
     [[parameters]]                    # optional; default: the five reference parameters
     name = "permx_mult"
@@ -72,10 +81,19 @@ class SimulatorSettings(_Strict):
 
 
 class PhysicsSettings(_Strict):
+    """Limits of the physics checks (see :mod:`hmcore.physics`) and the penalties."""
+
     perm_cap_md: float = Field(default=20000.0, gt=0)
     poro_max: float = Field(default=0.6, gt=0, le=1)
+    kv_kh_min: float = Field(default=0.001, gt=0)
+    kv_kh_max: float = Field(default=1.0, gt=0)
+    kv_kh_max_fraction: float = Field(default=0.10, ge=0, le=1)
+    trend_sd: float = Field(default=3.0, gt=0)
+    trend_max_fraction: float = Field(default=0.02, ge=0, le=1)
+    pore_volume_change_max: float = Field(default=0.15, ge=0)
+    pressure_min: float | None = Field(default=None, ge=0)  # deck units; None: 1 atmosphere
     failure_penalty: float = Field(default=10.0, gt=0)
-    violation_weight: float = Field(default=5.0, gt=0)
+    violation_weight: float = Field(default=5.0, ge=0)
 
 
 class CaseFile(_Strict):

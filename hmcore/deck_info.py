@@ -18,10 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from hmcore.deck_cells import MILLIDARCY_M2, CellProperties
 from hmcore.eclipse_lexer import include_target, split_blocks
 from hmcore.errors import CaseError, Problem
 
-MILLIDARCY_M2 = 9.869233e-16  # opm.io returns permeability in SI units (m2)
+UNIT_SYSTEMS = ("METRIC", "FIELD", "LAB", "PVT-M")
 SECTION_NAMES = ("RUNSPEC", "GRID", "EDIT", "PROPS", "REGIONS", "SOLUTION", "SUMMARY", "SCHEDULE")
 
 
@@ -44,6 +45,12 @@ class DeckInfo:
     start: datetime
     report_days: tuple[float, ...]
     properties: dict[str, tuple[float, float]] = field(default_factory=dict)  # (min, max); PERM* in mD
+    cells: CellProperties | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def unit_system(self) -> str:
+        """METRIC (the Eclipse default), FIELD, LAB or PVT-M, from the RUNSPEC keyword."""
+        return next((u for u in UNIT_SYSTEMS if u in self.keyword_names), "METRIC")
 
     @property
     def producers(self) -> list[str]:
@@ -89,7 +96,7 @@ class DeckInfo:
                     scale = 1.0 / MILLIDARCY_M2 if kw.startswith("PERM") else 1.0
                     props[kw] = (float(arr.min()) * scale, float(arr.max()) * scale)
         return DeckInfo(path, names, wells, (grid.nx, grid.ny, grid.nz), grid.nactive, start,
-                        days, props)
+                        days, props, CellProperties.from_parsed(deck, state))
 
 
 def missing_includes(path: Path, main_dir: Path | None = None, seen: set | None = None

@@ -5,7 +5,9 @@
 * observation: ``[a_prev (n), E_prev (1)]`` - the previous episode's action and misfit (a failed
   run's E is the failure penalty), E clipped to ``[0, e_cap]``;
 * reward: ``-E - P_phys`` (``-failure_penalty - P_phys`` for a failed run);
-* ``info``: misfit breakdown, coverage, status, reason and run directory.
+* ``info``: parameter values, status, reason, misfit breakdown and coverage - what the
+  proposal determines, so the same action gives the same step (gymnasium's ``check_env``
+  checks that); where the run was written is the journal's business, not the step's.
 """
 
 from __future__ import annotations
@@ -70,5 +72,5 @@ class HistoryMatchingEnv(gym.Env):
         self._obs = observation(action, observed_misfit(ev), self.e_cap)
         info = {"params": values, "status": ev.status.value, "reason": ev.reason, "E": ev.E,
                 "penalty": ev.penalty, "per_response": ev.per_response,
-                "coverage": ev.coverage, "run_dir": ev.run_dir}
+                "coverage": ev.coverage}
         return self._obs.copy(), float(ev.reward), True, False, info

@@ -22,7 +22,7 @@ from hmcore.deck import prepare_run_deck
 from hmcore.errors import SimulationError
 from hmcore.metrics import compute_metrics
 from hmcore.misfit import category_ranges, misfit
-from hmcore.physics import check_physics
+from hmcore.physics import check_physics, check_responses
 from hmcore.responses import last_time, read_responses
 from hmcore.simulator import Simulator, make_simulator
 
@@ -53,11 +53,27 @@ class Evaluation:
     metrics: dict = field(default_factory=dict)
     heldout_metrics: dict = field(default_factory=dict)
     responses: pd.DataFrame | None = field(default=None, repr=False)
+    violation_kinds: tuple[str, ...] = ()  # hmcore.physics.Check values, one per violation
 
     @property
     def selectable(self) -> bool:
         """Only complete, valid, finite runs may ever be called best."""
         return self.status is Status.COMPLETE and math.isfinite(self.E)
+
+    @classmethod
+    def from_record(cls, record: dict) -> "Evaluation":
+        """The evaluation a journaled record describes (no responses table)."""
+        def num(key: str) -> float:
+            v = record.get(key)
+            return float("nan") if v is None else float(v)
+
+        return cls(dict(record["params"]), Status(record["status"]), num("E"), num("penalty"),
+                   num("reward"), dict(record.get("per_response") or {}), num("coverage"),
+                   num("wall_time_s"), num("sim_time_s"), record.get("run_dir", ""),
+                   record.get("reason", ""), tuple(record.get("violations") or ()),
+                   num("E_heldout"), dict(record.get("metrics") or {}),
+                   dict(record.get("heldout_metrics") or {}),
+                   violation_kinds=tuple(record.get("violation_kinds") or ()))
 
     def to_record(self) -> dict:
         """Flat JSON-friendly record (no responses table)."""
@@ -65,6 +81,7 @@ class Evaluation:
         rec.pop("responses")
         rec["status"] = self.status.value
         rec["violations"] = list(self.violations)
+        rec["violation_kinds"] = list(self.violation_kinds)
         return rec
 
 
@@ -94,15 +111,15 @@ def evaluate(case: Case, values: dict[str, float], run_dir: Path,
     """Simulate ``values`` (physical units) in ``run_dir`` and score the result."""
     start = time.perf_counter()
     simulator = simulator or make_simulator(case.simulator.backend, case.simulator.timeout_s)
-    phys = check_physics(values, case.space, case.info, case.physics.perm_cap_md,
-                         case.physics.poro_max, case.physics.violation_weight)
+    phys = check_physics(values, case.space, case.info, case.physics)
     fail_reward = -case.physics.failure_penalty - phys.penalty
 
     def failed(reason: str, sim_time: float = 0.0) -> Evaluation:
         return Evaluation(dict(values), Status.FAIL, float("nan"),
                           case.physics.failure_penalty + phys.penalty, fail_reward,
                           wall_time_s=time.perf_counter() - start, sim_time_s=sim_time,
-                          run_dir=str(run_dir), reason=reason, violations=phys.violations)
+                          run_dir=str(run_dir), reason=reason, violations=phys.violations,
+                          violation_kinds=phys.kinds)
 
     if not phys.runnable:
         return failed("physically impossible, not simulated: " + "; ".join(phys.violations))
@@ -123,9 +140,10 @@ def evaluate(case: Case, values: dict[str, float], run_dir: Path,
     if not math.isfinite(s["E"]):
         return failed("no_match: no simulated record within the time tolerance of any "
                       "observation", result.wall_time_s)
+    phys = phys + check_responses(responses, case.info, case.physics)
     status = Status.COMPLETE if phys.valid else Status.INVALID
     return Evaluation(dict(values), status, s["E"], phys.penalty, -s["E"] - phys.penalty,
                       s["per_response"], s["coverage"], time.perf_counter() - start,
                       result.wall_time_s, str(run_dir), "; ".join(phys.violations),
                       phys.violations, s["E_heldout"], s["metrics"], s["heldout_metrics"],
-                      responses)
+                      responses, phys.kinds)

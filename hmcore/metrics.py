@@ -1,13 +1,22 @@
-"""Reported match metrics: NMSE, R^2 and C_match per response, per well, and category macro.
+"""Reported match metrics, the reference paper's formulas: NMSE, R^2 and C_match per response,
+per well, and the macro over the primary categories.
 
 ``NMSE = sum (y - yhat)^2 / (sum y^2 + eps)``, ``R^2 = 1 - SS_res / SS_tot``,
-``C_match = 100 / (1 + NMSE)``. Categories: oil, water, gas, bhp (primary; their mean is the
-macro) and the diagnostics gor and wct.
+``C_match = 100 / (1 + NMSE)``. Categories: oil, water, gas, bhp (primary) and the diagnostics
+gor and wct. Macro NMSE and macro R^2 are the means over the primary categories with data;
+macro C_match is ``100 / (1 + macro NMSE)`` (the paper's 97.23 = 100 / 1.0285), not the mean of
+the categories' C_match.
+
+GOR = Qg/Qo and WCT = Qw/(Qw+Qo) are defined only where their denominator is positive: a
+record is left out when the observed denominator is 0 (the well is shut in: observed oil rate,
+or liquid rate, 0; without an observed rate at that time, the ``flowing`` flag says so) or the
+simulated one is 0; ``excluded`` counts them per category, well and reason.
 """
 
 from __future__ import annotations
 
 import math
+from enum import Enum
 
 import numpy as np
 import pandas as pd
@@ -48,18 +57,69 @@ def _nanmean(values: list[float]) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
+RATIO_DENOMINATORS = {"WGOR": ("WOPR",), "WWCT": ("WOPR", "WWPR")}
+
+
+class Exclusion(str, Enum):
+    """Why a GOR or water-cut record is left out of the metrics."""
+
+    SHUT_IN_OBSERVED = "shut_in_observed"    # observed denominator 0: the ratio is undefined
+    NO_RATE_SIMULATED = "no_rate_simulated"  # simulated denominator 0: no simulated ratio
+
+
+def ratio_exclusions(pairs: pd.DataFrame) -> pd.Series:
+    """Per pair: the :class:`Exclusion` value of a GOR / WCT record left out, else None."""
+    reason = pd.Series([None] * len(pairs), index=pairs.index, dtype=object)
+    for q, parts in RATIO_DENOMINATORS.items():
+        rows = pairs.quantity == q
+        if not rows.any():
+            continue
+        sub = pairs.loc[rows, ["well", "days", "flowing"]]
+        obs_den = pd.Series(0.0, index=sub.index)
+        sim_den = pd.Series(0.0, index=sub.index)
+        known = pd.Series(False, index=sub.index)
+        for part in parts:
+            rate = pairs[pairs.quantity == part].drop_duplicates(["well", "days"])
+            m = sub.merge(rate[["well", "days", "observed", "simulated"]], on=["well", "days"],
+                          how="left").set_index(sub.index)
+            known |= m["observed"].notna()
+            obs_den += m["observed"].fillna(0.0)
+            sim_den += m["simulated"].fillna(0.0)
+        shut = np.where(known, obs_den <= 0, ~sub["flowing"].astype(bool))
+        no_sim = known.to_numpy() & (sim_den <= 0).to_numpy() & ~shut
+        reason.loc[sub.index[shut]] = Exclusion.SHUT_IN_OBSERVED.value
+        reason.loc[sub.index[no_sim]] = Exclusion.NO_RATE_SIMULATED.value
+    return reason
+
+
 def compute_metrics(pairs: pd.DataFrame) -> dict:
-    """``{macro, categories, wells}`` from aligned pairs (quantity, well, observed, simulated)."""
+    """``{macro, categories, wells, excluded}`` from aligned pairs (quantity, well, days,
+    observed, simulated, flowing); ``excluded[cat][well][reason]`` counts the GOR / WCT
+    records left out (each category's and well's score also carries ``n_excluded``)."""
     categories = {}
     wells: dict[str, dict] = {}
+    excluded: dict[str, dict[str, dict[str, int]]] = {}
+    reasons = ratio_exclusions(pairs)
     for cat, q in CATEGORIES.items():
-        sub = pairs[pairs.quantity == q]
+        rows = pairs.quantity == q
+        left_out = rows & reasons.notna()
+        sub = pairs[rows & ~left_out]
         categories[cat] = score(sub["observed"].to_numpy(), sub["simulated"].to_numpy())
-        for well, g in sub.groupby("well"):
-            wells.setdefault(str(well), {})[cat] = score(g["observed"].to_numpy(),
-                                                          g["simulated"].to_numpy())
-    macro = {k: _nanmean([categories[c][k] for c in PRIMARY]) for k in ("nmse", "r2", "cmatch")}
-    return {"macro": macro, "categories": categories, "wells": wells}
+        if cat in DIAGNOSTIC:
+            categories[cat]["n_excluded"] = int(left_out.sum())
+            counts = pairs[left_out].assign(reason=reasons[left_out]).groupby(["well", "reason"]).size()
+            excluded[cat] = {}
+            for (well, why), n in counts.items():
+                excluded[cat].setdefault(str(well), {})[str(why)] = int(n)
+        for well, g in pairs[rows].groupby("well"):
+            used = g[~left_out[g.index]]
+            s = score(used["observed"].to_numpy(), used["simulated"].to_numpy())
+            if cat in DIAGNOSTIC:
+                s["n_excluded"] = int(left_out[g.index].sum())
+            wells.setdefault(str(well), {})[cat] = s
+    macro = {k: _nanmean([categories[c][k] for c in PRIMARY]) for k in ("nmse", "r2")}
+    macro["cmatch"] = cmatch(macro["nmse"]) if math.isfinite(macro["nmse"]) else float("nan")
+    return {"macro": macro, "categories": categories, "wells": wells, "excluded": excluded}
 
 
 def category_table(metrics: dict) -> pd.DataFrame:
@@ -81,6 +141,31 @@ def well_table(metrics: dict) -> pd.DataFrame:
         rows.append({"well": well, **{c: cats.get(c, {}).get("cmatch", float("nan"))
                                       for c in CATEGORIES}})
     return pd.DataFrame(rows, columns=["well", *CATEGORIES])
+
+
+def ratio_table(metrics: dict) -> pd.DataFrame:
+    """The paper's GOR / water-cut diagnostics: per well and ratio, the records used and left
+    out (by reason), NMSE, R^2 and C_match; a last row per ratio for all wells."""
+    rows = []
+    excluded = metrics.get("excluded", {})
+    for cat in DIAGNOSTIC:
+        for well, cats in sorted(metrics["wells"].items(), key=lambda kv: _natural(kv[0])):
+            if cat in cats:
+                rows.append(_ratio_row(cat, well, cats[cat], excluded.get(cat, {}).get(well, {})))
+        if cat in metrics["categories"]:
+            total: dict[str, int] = {}
+            for why in excluded.get(cat, {}).values():
+                for k, n in why.items():
+                    total[k] = total.get(k, 0) + n
+            rows.append(_ratio_row(cat, "all", metrics["categories"][cat], total))
+    return pd.DataFrame(rows, columns=["ratio", "well", "N", "excluded", "why", "NMSE", "R2",
+                                       "C_match"])
+
+
+def _ratio_row(cat: str, well: str, s: dict, why: dict[str, int]) -> dict:
+    return {"ratio": cat, "well": well, "N": s["n"], "excluded": sum(why.values()),
+            "why": ", ".join(f"{k} {n}" for k, n in sorted(why.items())),
+            "NMSE": s["nmse"], "R2": s["r2"], "C_match": s["cmatch"]}
 
 
 def _natural(name: str) -> tuple:

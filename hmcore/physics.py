@@ -1,63 +1,246 @@
-"""Physical validity of a parameter vector, checked on the scaled deck properties.
+"""Physical validity of a proposal: the checks a reservoir engineer applies to a modified model.
 
-Rules (limits from the case's ``[physics]`` settings): porosity stays in (0, poro_max];
-permeabilities stay positive and below ``perm_cap_md``; skin stays above -6 (more negative
-skins make connection factors meaningless for unstimulated wells). The penalty grows with the
-relative size of each violation: ``P = weight * sum(relative excess)``; it is 0 when valid.
-Box-limited multipliers are assumed to reach the extreme cell (conservative).
+Before the simulator runs, on the base deck's cells scaled by the proposal's multipliers
+(:class:`hmcore.deck_cells.CellProperties`; box multipliers act on their box only):
+
+* ``parameter_range`` - multipliers stay > 0, skins above -6 (more negative skins make
+  connection factors meaningless for unstimulated wells);
+* ``porosity_max`` / ``permeability_cap`` - the largest cell stays below ``poro_max`` and
+  ``perm_cap_md``;
+* ``kv_kh`` - per cell, kv/kh = PERMZ / sqrt(PERMX PERMY) in ``[kv_kh_min, kv_kh_max]``: the share
+  of cells outside may grow by at most ``kv_kh_max_fraction`` over the deck's own share
+  (PERMZ x3 with PERMX x0.3 gives 10x the deck's ratio);
+* ``poro_perm_trend`` - the deck's own trend log10(kh) = a + b phi (least squares over its cells,
+  residual sd s): the share of cells further than ``trend_sd`` x s from the trend, evaluated at
+  their new porosity, may grow by at most ``trend_max_fraction``;
+* ``pore_volume`` - the total pore volume changes by at most ``pore_volume_change_max``.
+
+After the run, on the simulated well responses:
+
+* ``pressure_min`` - no open well's simulated BHP below ``pressure_min`` (deck units; default
+  one atmosphere: 1.01325 bar METRIC, 14.696 psia FIELD, 1 atm LAB);
+* ``water_cut_range`` - simulated water cut inside [0, 1].
+
+The penalty is graded, never an invented score: ``P = violation_weight * sum(excess)``, each
+excess measuring how far past its limit the proposal goes (relative excess for a value, the
+share of cells beyond the allowed share for a cell count). ``P = 0`` exactly when no check fires.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+import pandas as pd
 
 from hmcore.deck_info import DeckInfo
 from hmcore.parameters import ParameterSpace
 
 SKIN_MIN = -6.0
+ATMOSPHERE = {"METRIC": 1.01325, "FIELD": 14.696, "LAB": 1.0, "PVT-M": 1.0}
+WATER_CUT_SLACK = 1e-6
+
+
+class Check(str, Enum):
+    """The kinds of physics check (the ``kind`` of every violation)."""
+
+    PARAMETER_RANGE = "parameter_range"
+    POROSITY_MAX = "porosity_max"
+    PERMEABILITY_CAP = "permeability_cap"
+    KV_KH = "kv_kh"
+    PORO_PERM_TREND = "poro_perm_trend"
+    PORE_VOLUME = "pore_volume"
+    PRESSURE_MIN = "pressure_min"
+    WATER_CUT_RANGE = "water_cut_range"
+
+
+@dataclass(frozen=True)
+class Violation:
+    kind: Check
+    excess: float       # how far past the limit (> 0)
+    message: str
 
 
 @dataclass(frozen=True)
 class PhysicsCheck:
     penalty: float
-    violations: tuple[str, ...]
-    runnable: bool  # False when the simulator could not even run (porosity >= 1, say)
+    found: tuple[Violation, ...] = ()
+    runnable: bool = True  # False when the simulator could not even run (porosity >= 1, say)
+
+    @property
+    def violations(self) -> tuple[str, ...]:
+        return tuple(v.message for v in self.found)
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return tuple(v.kind.value for v in self.found)
 
     @property
     def valid(self) -> bool:
-        return not self.violations
+        return not self.found
+
+    def __add__(self, other: "PhysicsCheck") -> "PhysicsCheck":
+        return PhysicsCheck(self.penalty + other.penalty, self.found + other.found,
+                            self.runnable and other.runnable)
+
+
+@dataclass(frozen=True)
+class _Found:
+    items: list[Violation] = field(default_factory=list)
+
+    def add(self, kind: Check, excess: float, message: str) -> None:
+        self.items.append(Violation(kind, float(excess), message))
 
 
 def check_physics(values: dict[str, float], space: ParameterSpace, info: DeckInfo,
-                  perm_cap_md: float, poro_max: float, weight: float) -> PhysicsCheck:
-    factors: dict[str, float] = {}
-    violations: list[str] = []
-    excess = 0.0
+                  settings) -> PhysicsCheck:
+    """The checks before any simulator time (``settings``: the case's ``[physics]``)."""
+    found = _Found()
     runnable = True
+    multipliers: list[tuple[str, float, tuple[int, ...] | None]] = []
     for p in space.parameters:
         if p.name not in values:
             continue
         v = float(values[p.name])
         if p.kind == "multiply":
-            for kw in p.keywords:
-                factors[kw.upper()] = factors.get(kw.upper(), 1.0) * v
+            multipliers += [(kw.upper(), v, p.box) for kw in p.keywords]
             if v <= 0:
-                violations.append(f"{p.name}={v:g} must be > 0")
-                excess += 1.0 + abs(v)
+                found.add(Check.PARAMETER_RANGE, 1.0 + abs(v), f"{p.name}={v:g} must be > 0")
                 runnable = False
         elif p.kind == "skin" and v < SKIN_MIN:
-            violations.append(f"{p.name}={v:g} is below the physical floor {SKIN_MIN}")
-            excess += (SKIN_MIN - v) / abs(SKIN_MIN)
-    if "PORO" in info.properties and "PORO" in factors:
-        hi = info.properties["PORO"][1] * factors["PORO"]
-        if hi > poro_max:
-            violations.append(f"max porosity {hi:.3f} > {poro_max}")
-            excess += (hi - poro_max) / poro_max
-            runnable = runnable and hi < 1.0
+            found.add(Check.PARAMETER_RANGE, (SKIN_MIN - v) / abs(SKIN_MIN),
+                      f"{p.name}={v:g} is below the physical floor {SKIN_MIN}")
+    cells = info.cells
+    if runnable and cells is not None and cells.n:
+        factors = cells.factors(multipliers)
+        runnable = _check_extremes(cells, factors, settings, found)
+        _check_kv_kh(cells, factors, settings, found)
+        _check_trend(cells, factors, settings, found)
+        _check_pore_volume(cells, factors, settings, found)
+    return PhysicsCheck(settings.violation_weight * sum(v.excess for v in found.items),
+                        tuple(found.items), runnable)
+
+
+def check_responses(responses: pd.DataFrame, info: DeckInfo, settings) -> PhysicsCheck:
+    """The checks on a run's simulated well responses (well, quantity, days, value)."""
+    found = _Found()
+    pmin = settings.pressure_min if settings.pressure_min is not None else \
+        ATMOSPHERE.get(info.unit_system, 1.0)
+    bhp = responses[(responses.quantity == "WBHP") & (responses.value > 0)]  # 0: not yet open
+    if not bhp.empty and bhp.value.min() < pmin:
+        low = bhp[bhp.value < pmin]
+        worst = low.loc[low.value.idxmin()]
+        found.add(Check.PRESSURE_MIN, (pmin - worst.value) / pmin,
+                  f"simulated BHP {worst.value:.4g} below the minimum {pmin:g} "
+                  f"({worst.well}, day {worst.days:g}; {low.well.nunique()} well(s))")
+    wct = responses[responses.quantity == "WWCT"]
+    if not wct.empty:
+        out = np.maximum(wct.value - 1.0, -wct.value).to_numpy(float)
+        if out.max() > WATER_CUT_SLACK:
+            worst = wct.iloc[int(np.argmax(out))]
+            found.add(Check.WATER_CUT_RANGE, float(out.max()),
+                      f"simulated water cut {worst.value:.4g} outside [0, 1] "
+                      f"({worst.well}, day {worst.days:g})")
+    return PhysicsCheck(settings.violation_weight * sum(v.excess for v in found.items),
+                        tuple(found.items))
+
+
+def _scaled(cells, factors: dict[str, np.ndarray], kw: str) -> np.ndarray | None:
+    base = cells.get(kw)
+    if base is None:
+        return None
+    return base * factors[kw] if kw in factors else base
+
+
+def _check_extremes(cells, factors, settings, found: _Found) -> bool:
+    runnable = True
+    poro = _scaled(cells, factors, "PORO")
+    if poro is not None and "PORO" in factors and poro.max() > settings.poro_max:
+        hi = float(poro.max())
+        found.add(Check.POROSITY_MAX, (hi - settings.poro_max) / settings.poro_max,
+                  f"max porosity {hi:.3f} > {settings.poro_max}")
+        runnable = hi < 1.0
     for kw in ("PERMX", "PERMY", "PERMZ"):
-        if kw in info.properties and kw in factors:
-            hi = info.properties[kw][1] * factors[kw]
-            if hi > perm_cap_md:
-                violations.append(f"max {kw} {hi:.0f} mD > cap {perm_cap_md:.0f} mD")
-                excess += (hi - perm_cap_md) / perm_cap_md
-    return PhysicsCheck(weight * excess, tuple(violations), runnable)
+        k = _scaled(cells, factors, kw)
+        if k is not None and kw in factors and k.max() > settings.perm_cap_md:
+            hi = float(k.max())
+            found.add(Check.PERMEABILITY_CAP, (hi - settings.perm_cap_md) / settings.perm_cap_md,
+                      f"max {kw} {hi:.0f} mD > cap {settings.perm_cap_md:.0f} mD")
+    return runnable
+
+
+def _horizontal(cells, factors) -> tuple[np.ndarray, np.ndarray] | None:
+    """Deck and scaled kh = sqrt(PERMX PERMY) (PERMX alone when PERMY is absent)."""
+    kx = cells.get("PERMX")
+    if kx is None:
+        return None
+    ky = cells.get("PERMY") if cells.get("PERMY") is not None else kx
+    f = np.sqrt(factors.get("PERMX", 1.0) * factors.get("PERMY", factors.get("PERMX", 1.0)))
+    kh = np.sqrt(kx * ky)
+    return kh, kh * f
+
+
+def _check_kv_kh(cells, factors, settings, found: _Found) -> None:
+    kz = cells.get("PERMZ")
+    kh = _horizontal(cells, factors)
+    if kz is None or kh is None or not ({"PERMX", "PERMY", "PERMZ"} & set(factors)):
+        return
+    kh0, kh1 = kh
+    ok = kh0 > 0
+    r0 = kz[ok] / kh0[ok]
+    r1 = (kz * factors.get("PERMZ", 1.0))[ok] / kh1[ok]
+    lo, hi = settings.kv_kh_min, settings.kv_kh_max
+    share0 = np.mean((r0 < lo) | (r0 > hi))
+    share1 = np.mean((r1 < lo) | (r1 > hi))
+    grown = float(share1 - share0)
+    if grown > settings.kv_kh_max_fraction:
+        found.add(Check.KV_KH, grown - settings.kv_kh_max_fraction,
+                  f"kv/kh outside [{lo:g}, {hi:g}] in {100 * share1:.1f} % of the cells "
+                  f"(deck {100 * share0:.1f} %; at most +{100 * settings.kv_kh_max_fraction:g} "
+                  f"points allowed)")
+
+
+def poro_perm_trend(poro: np.ndarray, kh: np.ndarray) -> tuple[float, float, float]:
+    """The deck's trend log10(kh) = a + b phi over its cells with phi, kh > 0: (a, b, sd)."""
+    ok = (poro > 0) & (kh > 0)
+    if ok.sum() < 3 or np.ptp(poro[ok]) <= 0:
+        return float(np.mean(np.log10(kh[ok]))) if ok.any() else 0.0, 0.0, float("nan")
+    b, a = np.polyfit(poro[ok], np.log10(kh[ok]), 1)
+    resid = np.log10(kh[ok]) - (a + b * poro[ok])
+    return float(a), float(b), float(np.std(resid))
+
+
+def _check_trend(cells, factors, settings, found: _Found) -> None:
+    poro = cells.get("PORO")
+    kh = _horizontal(cells, factors)
+    if poro is None or kh is None or not ({"PORO", "PERMX", "PERMY"} & set(factors)):
+        return
+    kh0, kh1 = kh
+    a, b, sd = poro_perm_trend(poro, kh0)
+    if not sd > 0:
+        return
+    poro1 = poro * factors.get("PORO", 1.0)
+    ok = (poro > 0) & (kh0 > 0)
+    z0 = (np.log10(kh0[ok]) - (a + b * poro[ok])) / sd
+    z1 = (np.log10(kh1[ok]) - (a + b * poro1[ok])) / sd
+    share0 = np.mean(np.abs(z0) > settings.trend_sd)
+    share1 = np.mean(np.abs(z1) > settings.trend_sd)
+    grown = float(share1 - share0)
+    if grown > settings.trend_max_fraction:
+        found.add(Check.PORO_PERM_TREND, grown - settings.trend_max_fraction,
+                  f"{100 * share1:.1f} % of the cells lie beyond {settings.trend_sd:g} sd of the "
+                  f"deck's porosity-permeability trend (deck {100 * share0:.1f} %; at most "
+                  f"+{100 * settings.trend_max_fraction:g} points allowed)")
+
+
+def _check_pore_volume(cells, factors, settings, found: _Found) -> None:
+    porv = cells.get("PORV")
+    f = factors.get("PORO", 1.0) * factors.get("NTG", 1.0)
+    if porv is None or np.isscalar(f) or porv.sum() <= 0:
+        return
+    change = float((porv * f).sum() / porv.sum() - 1.0)
+    limit = settings.pore_volume_change_max
+    if abs(change) > limit:
+        found.add(Check.PORE_VOLUME, (abs(change) - limit) / limit,
+                  f"pore volume changes by {100 * change:+.1f} % (at most +-{100 * limit:g} %)")

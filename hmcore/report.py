@@ -1,4 +1,5 @@
-"""Plain-text renderings of results: the paper's two tables as Markdown, metrics as JSON.
+"""Plain-text renderings of results: the campaign report with the paper's three tables as
+Markdown, metrics as JSON.
 
 Nothing here runs a simulator; everything is rebuilt from stored metrics.
 """
@@ -12,7 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from hmcore.metrics import category_table, well_table
+from hmcore.metrics import category_table, ratio_table, well_table
 
 
 def _fmt(v: Any, digits: int = 4) -> str:
@@ -21,17 +22,11 @@ def _fmt(v: Any, digits: int = 4) -> str:
     return str(v)
 
 
-def markdown_table(df: pd.DataFrame, digits: int = 4) -> str:
-    head = "| " + " | ".join(map(str, df.columns)) + " |"
-    sep = "|" + "|".join("---" for _ in df.columns) + "|"
-    rows = ["| " + " | ".join(_fmt(v, digits) for v in row) + " |" for row in df.itertuples(index=False)]
-    return "\n".join([head, sep, *rows])
-
-
 def metrics_markdown(metrics: dict, title: str = "Match quality") -> str:
-    return (f"### {title}: categories\n\n{markdown_table(category_table(metrics))}\n\n"
-            f"### {title}: C_match (%) per well and response\n\n"
-            f"{markdown_table(well_table(metrics), 2)}\n")
+    """The paper's three tables (see :mod:`hmcore.paper_tables`)."""
+    from hmcore import paper_tables
+
+    return paper_tables.markdown(paper_tables.paper_tables(metrics), title)
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -64,6 +59,7 @@ def metrics_document(ev) -> dict:
         "macro": m.get("macro", {}),
         "categories": m.get("categories", {}),
         "wells": m.get("wells", {}),
+        "excluded": m.get("excluded", {}),
         "misfit": {"E": ev.E, "penalty": ev.penalty, "reward": ev.reward,
                    "per_response": ev.per_response, "coverage": ev.coverage,
                    "E_heldout": ev.E_heldout},
@@ -128,11 +124,18 @@ def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: d
         reasons = fails["reason"].fillna("").str.split(":").str[0].value_counts().to_dict()
         lines += [f"Failed calls by reason: {reasons}.", ""]
         doc["failure_reasons"] = reasons
+    kinds = (table["violation_kinds"].dropna().str.split(",").explode()
+             if "violation_kinds" in table else pd.Series(dtype=object))
+    kinds = kinds[kinds.astype(bool)].value_counts().to_dict() if len(kinds) else {}
+    if kinds:
+        lines += [f"Physics checks broken (calls penalised by each; see hmcore.physics): {kinds}.",
+                  ""]
+        doc["violation_counts"] = kinds
     if best is None:
         lines += ["No valid simulation: nothing can be called best."]
         return "\n".join(lines) + "\n", to_jsonable(doc)
     params = best["params"]
-    lines += [f"## Best case: call {best['index']} (E = {_fmt(best['E'], 6)})", "",
+    lines += [f"## Best case: call {best['index'] + 1} of {n} (E = {_fmt(best['E'], 6)})", "",
               "| parameter | value |", "|---|---|"]
     lines += [f"| {k} | {_fmt(v)} |" for k, v in params.items()]
     doc["best"] = {"index": best["index"], "E": best["E"], "params": params,
@@ -150,6 +153,7 @@ def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: d
     wells = well_table(best["metrics"])
     doc["category_table"] = to_jsonable(cat.to_dict(orient="records"))
     doc["well_table"] = to_jsonable(wells.to_dict(orient="records"))
+    doc["ratio_table"] = to_jsonable(ratio_table(best["metrics"]).to_dict(orient="records"))
     if best.get("heldout_metrics") and best["heldout_metrics"].get("categories"):
         lines += [f"Held-back history (after day {case_doc.get('history_end_days')}): "
                   f"E = {_fmt(best.get('E_heldout'), 6)}", "",

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import pandas as pd
 
 from hmcore.misfit import PRIMARY
@@ -14,7 +12,8 @@ COLUMNS = ["index", "phase", "lane", "status", "reason", "E", "penalty", "reward
 
 def results_table(records: list[dict], parameter_names: list[str]) -> pd.DataFrame:
     """Columns: COLUMNS, ``p_<name>`` (physical values), ``a_<name>`` (actions in [-1, 1]),
-    ``loss_<category>`` (per-response misfit), ``macro_nmse/r2/cmatch`` and ``best_E_so_far``."""
+    ``loss_<category>`` (per-response misfit), ``violation_kinds`` (the physics checks a penalised
+    call broke, comma-separated), ``macro_nmse/r2/cmatch`` and ``best_E_so_far``."""
     rows = []
     for r in sorted(records, key=lambda r: r["index"]):
         row = {c: r.get(c) for c in COLUMNS}
@@ -24,18 +23,15 @@ def results_table(records: list[dict], parameter_names: list[str]) -> pd.DataFra
             row[f"a_{name}"] = action[k] if k < len(action) else None
         for cat in PRIMARY:
             row[f"loss_{cat}"] = (r.get("per_response") or {}).get(cat)
+        row["violation_kinds"] = ",".join(r.get("violation_kinds") or [])
         macro = (r.get("metrics") or {}).get("macro") or {}
         for k in ("nmse", "r2", "cmatch"):
             row[f"macro_{k}"] = macro.get(k)
         rows.append(row)
     df = pd.DataFrame(rows)
     for col in df.columns:
-        if col not in ("phase", "status", "reason", "run_dir", "agent"):
+        if col not in ("phase", "status", "reason", "run_dir", "agent", "violation_kinds"):
             df[col] = pd.to_numeric(df[col], errors="coerce")
     ok = df["E"].where(df["status"] == "COMPLETE")
     df["best_E_so_far"] = ok.cummin()
     return df
-
-
-def is_finite(x) -> bool:
-    return x is not None and isinstance(x, (int, float)) and math.isfinite(x)

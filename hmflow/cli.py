@@ -46,22 +46,20 @@ def _num(v, digits=4) -> str:
 
 
 def print_tables(metrics: dict, title: str = "") -> None:
-    """Print the paper's two tables (category table; well x response C_match)."""
-    from hmcore.metrics import CATEGORIES, category_table, well_table
+    """Print the paper's three tables (categories; C_match per well; GOR / water cut per well),
+    in the paper's rounding."""
+    from hmcore.paper_tables import cell, paper_tables
 
-    t = Table(title=f"{title} match by category".strip())
-    for col in ("category", "N", "NMSE", "R2", "C_match %"):
-        t.add_column(col, justify="right" if col != "category" else "left")
-    for row in category_table(metrics).itertuples(index=False):
-        t.add_row(row.category, str(row.N), _num(row.NMSE), _num(row.R2), _num(row.C_match, 2))
-    console.print(t)
-    w = Table(title=f"{title} C_match (%) per well and response".strip())
-    w.add_column("well")
-    for c in CATEGORIES:
-        w.add_column(c, justify="right")
-    for row in well_table(metrics).itertuples(index=False):
-        w.add_row(row[0], *[_num(v, 2) for v in row[1:]])
-    console.print(w)
+    heads = {"categories": "match by category", "wells": "C_match (%) per well and category",
+             "ratios": "GOR and water cut per well (records used, left out and why)"}
+    for key, df in paper_tables(metrics).items():
+        t = Table(title=f"{title} {heads[key]}".strip())
+        for col in df.columns:
+            t.add_column(str(col), justify="left" if col in ("category", "ratio", "well", "why")
+                         else "right")
+        for row in df.itertuples(index=False):
+            t.add_row(*[cell(c, v) for c, v in zip(df.columns, row)])
+        console.print(t)
 
 
 def parse_sets(sets: list[str], names: list[str]) -> dict[str, float]:
@@ -176,7 +174,9 @@ def _progress_watcher(storage: Path, campaign_hint: str | None, budget: int, sto
 
 @app.command()
 def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
-        agent: str = typer.Option("sac", "--agent", help="Proposer: sac (reference) or random"),
+        agent: str = typer.Option("sac", "--agent", help="sac (hmflow's default), sac-paper (the "
+                                  "reference paper's SAC exactly: SB3 learn(), budget a multiple "
+                                  "of --workers), random, sobol, cmaes, de, bo, lm, esmda"),
         budget: int = typer.Option(200, "--budget", min=1, help="Simulator calls"),
         workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
         seed: int = typer.Option(0, "--seed"),
@@ -191,6 +191,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     from flows.campaign import campaign_flow, default_campaign_name
 
     c = _load(case)  # clear errors before any simulator time or Prefect start-up
+    _check_agent(agent, budget, workers)
     name = campaign or default_campaign_name(c.name, agent, seed)
     storage = storage.resolve()
     console.print(f"campaign [bold]{name}[/]: case {c.name}, agent {agent}, budget {budget}, "
@@ -211,6 +212,19 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         stop.set()
         watcher.join()
     _print_report(storage, result["campaign"])
+
+
+def _check_agent(agent: str, budget: int, workers: int) -> None:
+    from hmcore.agents import AGENTS, budget_problem
+
+    if agent not in AGENTS:
+        err_console.print(f"[red]x[/] --agent must be one of {list(AGENTS)}, got {agent!r}")
+        raise typer.Exit(2)
+    problem = budget_problem(agent, budget, workers)
+    if problem:
+        err_console.print(f"[red]x[/] --agent {agent}, --budget {budget}, --workers {workers}: "
+                          f"{problem}")
+        raise typer.Exit(2)
 
 
 def _task_runner(kind: str, workers: int):
@@ -248,7 +262,7 @@ def _print_report(storage: Path, campaign: str) -> None:
         if doc["calls"]:
             console.print("[red]no valid simulation - nothing to call best[/]")
     else:
-        console.print(f"best call {best['index']}: E = {best['E']:.6g}"
+        console.print(f"best call {best['index'] + 1} (calls numbered from 1): E = {best['E']:.6g}"
                       + (f", held-back E = {best['E_heldout']:.6g}" if best.get("E_heldout") else ""))
         for k, v in best["params"].items():
             console.print(f"  {k:<12} = {v:.4f}")
@@ -279,6 +293,104 @@ def report(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
     _print_report(storage, campaign)
+
+
+@app.command()
+def tables(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
+           campaign: str = typer.Option(..., "--campaign"),
+           call: Optional[int] = typer.Option(None, "--call", min=1, help="Call number (from 1); "
+                                              "default: the archived best case"),
+           markdown_out: Optional[Path] = typer.Option(None, "--markdown", help="Also write the "
+                                                       "tables as Markdown to this new file")) -> None:
+    """The reference paper's three tables for a stored campaign, rescored from the stored
+    summary with today's formulas (zero simulator calls)."""
+    from hmcore.paper_tables import markdown, metrics_from_summary, paper_tables
+    from storage import ArtifactStore, EvaluationJournal
+
+    store = ArtifactStore(storage)
+    case = store.latest(campaign, "case") if (storage / campaign).is_dir() else None
+    if case is None:
+        err_console.print(f"[red]x[/] no campaign '{campaign}' with a stored case in {storage}; "
+                          f"known: {store.campaigns() if storage.is_dir() else []}")
+        raise typer.Exit(2)
+    if call is None:
+        best = store.latest(campaign, "best")
+        if best is None:
+            err_console.print(f"[red]x[/] campaign '{campaign}' has no archived best case (no valid "
+                              "run yet); give --call N")
+            raise typer.Exit(2)
+        run_dir, label = best.path, f"best case (call {best.read_json('metrics.json')['index'] + 1})"
+    else:
+        rows = {r["index"]: r for r in EvaluationJournal(store, campaign).rows()}
+        if call - 1 not in rows:
+            err_console.print(f"[red]x[/] campaign '{campaign}' has no call {call} (it has "
+                              f"{len(rows)} calls, numbered from 1)")
+            raise typer.Exit(2)
+        run_dir, label = Path(rows[call - 1]["run_dir"]), f"call {call}"
+    summaries = sorted(run_dir.glob("*.SMSPEC"))
+    if not summaries:
+        err_console.print(f"[red]x[/] {run_dir} holds no summary file (.SMSPEC): the run failed "
+                          "or its files were removed")
+        raise typer.Exit(2)
+    doc = case.read_json("case.json")
+    fit, held = metrics_from_summary(case.read_parquet("observed.parquet"), summaries[0],
+                                     doc["wells"], doc["time_tolerance_days"],
+                                     doc.get("history_end_days"))
+    console.print(f"[bold]{campaign}[/]: {label}, {summaries[0]}")
+    print_tables(fit, "Fitted history:")
+    text = markdown(paper_tables(fit), f"{campaign}, {label}, fitted history")
+    if held:
+        print_tables(held, "Held-back history:")
+        text += "\n" + markdown(paper_tables(held), f"{campaign}, {label}, held-back history")
+    if markdown_out is not None:
+        if markdown_out.exists():
+            err_console.print(f"[red]x[/] {markdown_out} exists; hmflow never overwrites a file "
+                              "(choose a new name)")
+            raise typer.Exit(2)
+        markdown_out.write_text(text)
+        console.print(f"wrote {markdown_out}")
+
+
+@app.command()
+def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
+          methods: str = typer.Option(",".join(("sac", "sac-paper", "random", "sobol", "cmaes",
+                                                "de", "bo", "lm", "esmda")), "--methods",
+                                      help="Comma-separated methods"),
+          seeds: int = typer.Option(5, "--seeds", min=1, help="Seeds 0 .. K-1 for every method"),
+          budget: int = typer.Option(100, "--budget", min=1, help="Simulator calls per method "
+                                     "and seed (every run counts: Jacobian runs, ensemble "
+                                     "members)"),
+          workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
+          storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
+          name: Optional[str] = typer.Option(None, "--name", help="Benchmark name (default "
+                                             "bench-CASE); the same name resumes")) -> None:
+    """Equal-budget benchmark: every method x seed is an ordinary campaign (a stopped benchmark
+    resumes where it was), then one table, Parquet files and a best-so-far plot."""
+    from flows.bench import bench_flow
+
+    from hmcore.agents import AGENTS
+
+    c = _load(case)
+    chosen = [m.strip() for m in methods.split(",") if m.strip()]
+    unknown = [m for m in chosen if m not in AGENTS]
+    if unknown or not chosen:
+        err_console.print(f"[red]x[/] --methods: unknown {unknown or 'none given'}; choose from "
+                          f"{list(AGENTS)}")
+        raise typer.Exit(2)
+    for m in chosen:
+        _check_agent(m, budget, workers)
+    storage = storage.resolve()
+    console.print(f"benchmark on case {c.name}: {len(chosen)} methods x {seeds} seeds x {budget} "
+                  f"calls, {workers} workers, storage {storage}")
+    flow_fn = bench_flow.with_options(task_runner=_task_runner("threads", workers))
+    try:
+        result = flow_fn(case=str(case), methods=chosen, seeds=list(range(seeds)), budget=budget,
+                         workers=workers, storage=str(storage), name=name)
+    except ValueError as exc:
+        err_console.print(f"[red]x[/] {exc}")
+        raise typer.Exit(2)
+    console.print(Path(result["summary_path"]).read_text(), highlight=False, soft_wrap=True)
+    console.print(f"table: {result['summary_path']}\nplot:  {result['plot_path']}")
 
 
 @app.command()

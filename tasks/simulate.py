@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from prefect import task
@@ -55,15 +56,30 @@ def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: P
     return ev, attempt
 
 
+def observation_set(case: Case):
+    """The case's measured rows with their noise level (built once per campaign): what the
+    whitened residual vector of each call is made from, for the methods that need it."""
+    from hmcore.diagnosis.residuals import ObservationSet
+
+    return ObservationSet.from_case(case)
+
+
 @task(name="simulate", cache_policy=NO_CACHE, retries=2, retry_delay_seconds=1,
       retry_condition_fn=retry_transient)
-def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, agent: str) -> dict:
-    """Evaluate ``job`` and journal the record; transient failures raise to be retried."""
+def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, agent: str,
+             observations=None) -> dict:
+    """Evaluate ``job`` and journal the record; transient failures raise to be retried. With
+    ``observations`` (an ObservationSet) the record also holds ``residuals``, the whitened
+    residual vector of the fitted history (least-squares and ensemble methods use it)."""
     store = ArtifactStore(store_root)
     run_dir = fresh_dir(Path(store_root) / campaign / "runs" / f"{job.index:06d}")
     ev, attempt = evaluate_or_raise_transient(case, job.values, run_dir)
+    extra = {}
+    if observations is not None and ev.responses is not None:
+        extra["residuals"] = observations.residual_vector(ev.responses, "fit").tolist()
     record = to_jsonable({"index": job.index, "lane": job.lane, "phase": job.phase,
                           "action": list(job.action), "seed": seed, "agent": agent,
-                          "attempts": attempt, **ev.to_record()})
+                          "attempts": attempt, "finished_at": time.time(), **ev.to_record(),
+                          **extra})
     EvaluationJournal(store, campaign).record(job.index, record)
     return record

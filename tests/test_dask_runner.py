@@ -94,10 +94,11 @@ def test_campaign_flow_on_a_local_dask_cluster(tmp_path):
     rows = [json.loads(p.read_text())
             for p in sorted((storage / "punq-dask" / "evaluations").glob("*.json"))]
     assert [r["index"] for r in rows] == list(range(BUDGET))
-    assert [r["status"] for r in rows] == ["COMPLETE"] * BUDGET, [r.get("reason") for r in rows]
+    # every call simulated and scored (some may be penalised by a physics check, none failed)
+    assert all(r["status"] in ("COMPLETE", "INVALID") for r in rows), [r.get("reason") for r in rows]
     store = ArtifactStore(storage)
     table = store.latest("punq-dask", "results").read_parquet("evaluations.parquet")
-    assert len(table) == BUDGET and (table["status"] == "COMPLETE").all()
+    assert len(table) == BUDGET and (table["status"] != "FAIL").all()
     assert store.latest("punq-dask", "best") is not None
     assert Path(result["report_path"]).is_file()
 

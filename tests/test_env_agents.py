@@ -76,7 +76,7 @@ def test_sb3_sac_learns_on_the_env_with_learn():
     assert model.num_timesteps == 30
 
 
-def _run(proposer, budget=60, workers=2):
+def _run(proposer, budget=60, workers=2, exploit_last=None):
     calls = []
 
     def batch(jobs: list[Job]) -> list[dict]:
@@ -89,12 +89,18 @@ def _run(proposer, budget=60, workers=2):
                         "reward": ev.reward, "phase": j.phase})
         return out
 
-    return calibrate(proposer, SPACE, batch, budget, workers), calls
+    return calibrate(proposer, SPACE, batch, budget, workers, exploit_last=exploit_last), calls
 
 
 def test_calibrate_counts_calls_in_batches_and_ends_on_exploit():
-    records, calls = _run(RandomProposer(SPACE.dim, 0), budget=7, workers=3)
+    records, calls = _run(RandomProposer(SPACE.dim, 0), budget=7, workers=3, exploit_last=True)
     assert calls == [3, 3, 1] and [r["index"] for r in records] == list(range(7))
+    assert records[-1]["phase"] == "exploit"
+    # by default the proposer decides: random search's recommendation is a point it has
+    # evaluated already (no call wasted on it), SAC's deterministic policy is not
+    records, _ = _run(RandomProposer(SPACE.dim, 0), budget=7, workers=3)
+    assert records[-1]["phase"] == "explore"
+    records, _ = _run(SACProposer(SPACE.dim, 0, SACSettings(learning_starts=4)), budget=7)
     assert records[-1]["phase"] == "exploit"
 
 
@@ -160,3 +166,59 @@ def test_sac_learns_from_failures_capped_at_the_worst_scored_cost():
     p.tell([Proposal(props[0].action, props[0].observation, 0)], [Feedback(-2.0, 2.0)])
     assert p.learning_costs()[1] == pytest.approx(3.0)
     assert p.model.replay_buffer.rewards[1, 0] == pytest.approx(-3.0 * p.settings.reward_scale)
+
+
+# ----------------------------------------------------------------------------- sac-paper
+def test_sac_paper_is_sb3_learn_over_the_env_with_the_papers_settings():
+    """The published method: SB3's learn() steps HistoryMatchingEnv copies (one call per
+    one-step episode), lr 3e-4, buffer 10,000, batch 64, SB3's defaults elsewhere."""
+    from stable_baselines3 import SAC
+
+    from hmcore.agents.sac_paper import BatchedEnv, PaperSAC
+
+    p = make_proposer("sac-paper", SPACE.dim, 0)
+    assert isinstance(p, PaperSAC)
+    records, calls = _run(p, budget=120, workers=2)
+    m = p.model
+    assert isinstance(m, SAC) and isinstance(m.get_env(), BatchedEnv)
+    assert all(isinstance(e, HistoryMatchingEnv) for e in m.get_env().envs)
+    assert (m.learning_rate, m.buffer_size, m.batch_size) == (3e-4, 10_000, 64)
+    default = SAC("MlpPolicy", HistoryMatchingEnv(SPACE, fake_evaluate), device="cpu")
+    assert (m.learning_starts, m.tau, m.train_freq, m.ent_coef) == (
+        default.learning_starts, default.tau, default.train_freq, default.ent_coef) == (
+        100, 0.005, default.train_freq, "auto")
+    assert m.policy.net_arch == default.policy.net_arch
+    # one simulator call per transition, two at a time, every call a record in order
+    assert calls == [2] * 60 and [r["index"] for r in records] == list(range(120))
+    assert m.num_timesteps == 120
+    # as many gradient steps as calls after the 100 uniform-random ones (the serial loop's 1:1)
+    assert m._n_updates == 120 - 100
+    # observation [a_prev, E_prev] of each copy; failed runs seen as their penalty
+    last = m.get_env().envs[1]._obs
+    np.testing.assert_allclose(last[:-1], records[-1]["action"], atol=1e-6)
+    rec_e = records[-1]["E"] if math.isfinite(records[-1]["E"]) else records[-1]["penalty"]
+    assert last[-1] == pytest.approx(min(rec_e, 10.0), rel=1e-6)
+
+
+def test_sac_paper_resumes_by_replaying_the_journal_and_refuses_a_diverged_one():
+    first, _ = _run(make_proposer("sac-paper", SPACE.dim, 5), budget=110, workers=2)
+    done = {r["index"]: r for r in first[:104]}
+    calls = []
+
+    def batch(jobs):
+        calls.extend(j.index for j in jobs)
+        return [next(r for r in first if r["index"] == j.index) for j in jobs]
+
+    again = calibrate(make_proposer("sac-paper", SPACE.dim, 5), SPACE, batch, 110, 2, done)
+    assert calls == list(range(104, 110))  # nothing journaled is simulated again
+    assert [r["action"] for r in again] == [r["action"] for r in first]
+    # a journal from another seed is refused, not mixed
+    other, _ = _run(make_proposer("sac-paper", SPACE.dim, 6), budget=4, workers=2)
+    with pytest.raises(RuntimeError, match="diverged at call 0"):
+        calibrate(make_proposer("sac-paper", SPACE.dim, 5), SPACE, batch, 110, 2,
+                  {r["index"]: r for r in other})
+
+
+def test_sac_paper_refuses_a_budget_that_is_not_a_multiple_of_the_workers():
+    with pytest.raises(ValueError, match="multiple of workers"):
+        _run(make_proposer("sac-paper", SPACE.dim, 0), budget=7, workers=2)

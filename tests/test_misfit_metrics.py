@@ -326,7 +326,9 @@ def test_hand_computed_example():
     # macro over the primary categories with data (oil, bhp); the diagnostic gor is left out
     assert met["macro"]["nmse"] == pytest.approx((8 / 132500 + 0.005) / 2)
     assert met["macro"]["r2"] == pytest.approx(0.96)
-    assert met["macro"]["cmatch"] == pytest.approx((100 / (1 + 8 / 132500) + 100 / 1.005) / 2)
+    # the paper's macro C_match: 100 / (1 + macro NMSE), not the mean of the categories' C_match
+    assert met["macro"]["cmatch"] == pytest.approx(100 / (1 + (8 / 132500 + 0.005) / 2))
+    assert met["macro"]["cmatch"] != pytest.approx((100 / (1 + 8 / 132500) + 100 / 1.005) / 2)
     assert set(met["wells"]) == {"A", "B"} and set(met["wells"]["B"]) == {"gor"}
 
 
@@ -348,11 +350,50 @@ def test_category_counts_add_up(data):
     assert set(met["categories"]) == set(CATEGORIES)
     for cat, q in CATEGORIES.items():
         n = int((pairs["quantity"] == q).sum())
-        assert met["categories"][cat]["n"] == n
-        assert sum(w.get(cat, {"n": 0})["n"] for w in met["wells"].values()) == n
+        left_out = met["categories"][cat].get("n_excluded", 0)
+        assert met["categories"][cat]["n"] + left_out == n
+        assert sum(w.get(cat, {"n": 0})["n"] for w in met["wells"].values()) + left_out == n
+        assert left_out == sum(c for why in met["excluded"].get(cat, {}).values()
+                               for c in why.values())
 
 
 def test_no_primary_data_gives_nan_misfit():
     obs = pd.DataFrame({"well": ["A"], "quantity": ["WGOR"], "days": [1.0], "value": [50.0]})
     m = misfit(align(obs, obs, 1.0).pairs)
     assert math.isnan(m.E)
+
+
+def test_shut_in_records_are_left_out_of_gor_and_water_cut_and_counted():
+    """GOR = Qg/Qo and WCT = Qw/(Qw+Qo) are undefined while a well is shut in: a hand-built
+    history with one shut-in report (all rates 0) leaves it out of both ratios, counts it per
+    well and reason, and keeps it in the primary categories (a 0 = 0 rate match)."""
+    days = [10.0, 20.0, 30.0]
+    obs = pd.DataFrame({
+        "well": ["P"] * 12, "days": days * 4,
+        "quantity": ["WOPR"] * 3 + ["WWPR"] * 3 + ["WGOR"] * 3 + ["WWCT"] * 3,
+        "value": [100.0, 0.0, 80.0, 10.0, 0.0, 20.0, 50.0, 0.0, 60.0, 0.1, 0.0, 0.2],
+        "flowing": [True, False, True] * 4})
+    sim = obs.drop(columns="flowing").copy()
+    sim.loc[sim.quantity == "WGOR", "value"] = [55.0, 0.0, 60.0]
+    sim.loc[sim.quantity == "WWCT", "value"] = [0.1, 0.0, 0.3]
+    met = compute_metrics(align(obs, sim, 1.0).pairs)
+    gor, wct = met["categories"]["gor"], met["categories"]["wct"]
+    assert (gor["n"], gor["n_excluded"]) == (2, 1) and (wct["n"], wct["n_excluded"]) == (2, 1)
+    assert met["excluded"] == {"gor": {"P": {"shut_in_observed": 1}},
+                               "wct": {"P": {"shut_in_observed": 1}}}
+    # only the two flowing records: NMSE = 5^2 / (50^2 + 60^2); WCT (0.1)^2 / (0.1^2 + 0.2^2)
+    assert gor["nmse"] == pytest.approx(25 / (2500 + 3600))
+    assert wct["nmse"] == pytest.approx(0.01 / 0.05)
+    # R^2 over the defined records: the 0 = 0 shut-in match no longer inflates it
+    assert gor["r2"] == pytest.approx(1 - 25 / 50)
+    assert met["categories"]["oil"]["n"] == 3 and "n_excluded" not in met["categories"]["oil"]
+    # a simulated well that makes no oil where the observed one flows: no simulated GOR
+    sim2 = sim.copy()
+    sim2.loc[(sim2.quantity == "WOPR") & (sim2.days == 30.0), "value"] = 0.0
+    met2 = compute_metrics(align(obs, sim2, 1.0).pairs)
+    assert met2["excluded"]["gor"]["P"] == {"shut_in_observed": 1, "no_rate_simulated": 1}
+    assert met2["excluded"]["wct"]["P"] == {"shut_in_observed": 1}  # Qw + Qo = 20 > 0
+    # without observed rates, the flowing flag marks the shut-in record
+    ratios_only = obs[obs.quantity.isin(["WGOR", "WWCT"])]
+    met3 = compute_metrics(align(ratios_only, sim, 1.0).pairs)
+    assert met3["categories"]["gor"]["n_excluded"] == 1

@@ -18,7 +18,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from conftest import (PUNQ_OBS_STANDARD, PUNQ_WELLS, SIMULATION_SLOTS, requires_opm,
+from conftest import (PUNQ_OBS_FULL, PUNQ_OBS_STANDARD, PUNQ_WELLS, SIMULATION_SLOTS, requires_opm,
                       requires_punq)
 from hmcore.alignment import align
 from hmcore.evaluation import Status, evaluate, score_responses
@@ -222,22 +222,33 @@ def test_hmflow_evaluate_writes_the_documented_outputs(punq_case_toml, truth_sco
     assert set(doc["macro"]) >= {"nmse", "r2", "cmatch"}
     cats = ("oil", "water", "gas", "bhp", "gor", "wct")
     assert set(doc["categories"]) == set(cats)
+    obs = pd.read_csv(PUNQ_OBS_FULL)
+    obs = obs[obs.days <= 2936]
+    shut = obs[(obs.quantity == "WOPR") & (obs.value <= 0)]
+    assert len(shut) > 0  # the shut-in years and the yearly two-week shut-ins
     for c in cats:
         assert set(doc["categories"][c]) >= {"n", "nmse", "r2", "cmatch"}
-        assert doc["categories"][c]["n"] == 240  # 6 wells x 40 report days <= 2936
+        # 6 wells x 40 report days <= 2936; GOR and WCT only where the well flows
+        left_out = len(shut) if c in ("gor", "wct") else 0
+        assert doc["categories"][c]["n"] == 240 - left_out
+        assert doc["categories"][c].get("n_excluded", 0) == left_out
+    assert doc["excluded"]["gor"] == {
+        w: {"shut_in_observed": int(n)} for w, n in shut.groupby("well").size().items()}
     assert set(doc["wells"]) == set(PUNQ_WELLS)
     for well, per_cat in doc["wells"].items():
         assert set(per_cat) == set(cats), well
         for c, m in per_cat.items():
-            assert set(m) >= {"n", "nmse", "r2", "cmatch"} and m["n"] == 40
+            assert set(m) >= {"n", "nmse", "r2", "cmatch"}
+            assert m["n"] + m.get("n_excluded", 0) == 40
     assert set(doc["misfit"]) >= {"E", "penalty", "reward", "per_response"}
     assert set(doc["misfit"]["per_response"]) == {"oil", "water", "gas", "bhp"}
     assert doc["misfit"]["penalty"] == 0.0
     assert doc["misfit"]["reward"] == pytest.approx(-doc["misfit"]["E"])
     # skin=5 is the truth deck's own value: same score as the unmodified truth run
     assert doc["misfit"]["E"] == pytest.approx(truth_score["E"], rel=1e-6)
-    assert doc["macro"]["cmatch"] == pytest.approx(
-        np.mean([doc["categories"][c]["cmatch"] for c in ("oil", "water", "gas", "bhp")]))
+    macro_nmse = np.mean([doc["categories"][c]["nmse"] for c in ("oil", "water", "gas", "bhp")])
+    assert doc["macro"]["nmse"] == pytest.approx(macro_nmse)
+    assert doc["macro"]["cmatch"] == pytest.approx(100 / (1 + macro_nmse))  # the paper's formula
 
     resp = pd.read_parquet(out / "responses.parquet")
     assert list(resp.columns) == ["well", "days", "quantity", "value"]
@@ -245,3 +256,20 @@ def test_hmflow_evaluate_writes_the_documented_outputs(punq_case_toml, truth_sco
     assert set(resp.quantity) == {"WBHP", "WOPR", "WWPR", "WGPR", "WGOR", "WWCT"}
     assert resp.days.max() == pytest.approx(6025.0)
     assert np.isfinite(resp.value).all()
+
+
+@pytest.mark.opm
+def test_gymnasium_check_env_passes_with_the_real_opm_evaluator(punq_case, tmp_path):
+    """The paper's environment, with the real simulator behind every step (PUNQ-S3)."""
+    from gymnasium.utils.env_checker import check_env
+
+    from hmcore.env import HistoryMatchingEnv
+    from hmcore.evaluation import evaluate
+
+    runs = itertools.count()
+
+    def run(values):
+        return evaluate(punq_case, values, tmp_path / f"run{next(runs)}")
+
+    check_env(HistoryMatchingEnv(punq_case.space, run), skip_render_check=True)
+    assert next(runs) >= 2  # it stepped the real simulator (twice with the same action at least)

@@ -1,18 +1,80 @@
-"""Proposers (ask/tell): they never run the simulator; the caller evaluates what they ask."""
+"""Calibration methods. Proposers (ask/tell) and drivers (their own loop, handed the evaluator)
+never run the simulator; the caller evaluates what they ask and journals every call.
 
-from hmcore.agents.base import Feedback, Proposal, Proposer
+| name | method | library |
+|---|---|---|
+| ``sac`` | hmflow's SAC (the default) | stable-baselines3 |
+| ``sac-paper`` | the reference paper's SAC, SB3's ``learn()`` | stable-baselines3 |
+| ``random`` | uniform random search | numpy |
+| ``sobol`` | scrambled Sobol' points | scipy.stats.qmc |
+| ``cmaes`` | CMA-ES | cma |
+| ``de`` | differential evolution | nevergrad |
+| ``bo`` | Gaussian-process Bayesian optimisation | optuna (GPSampler) |
+| ``lm`` | bounded least squares on the whitened residuals, multi-start | scipy.optimize |
+| ``esmda`` | ensemble smoother with multiple data assimilation | iterative_ensemble_smoother |
+"""
+
+from hmcore.agents.base import Driver, Feedback, Proposal, Proposer
 from hmcore.agents.random_search import RandomProposer
 from hmcore.agents.sac import SACProposer, SACSettings
+from hmcore.agents.sac_paper import PaperSAC, PaperSACSettings
+
+AGENTS = ("sac", "sac-paper", "random", "sobol", "cmaes", "de", "bo", "lm", "esmda")
 
 
-def make_proposer(name: str, dim: int, seed: int, **settings) -> Proposer:
-    """Build a proposer by name: ``sac`` (reference method) or ``random`` (baseline)."""
+def make_proposer(name: str, dim: int, seed: int, workers: int = 1, budget: int = 200,
+                  **settings) -> Proposer | Driver:
+    """Build a method by name (see the table above); ``settings`` go to the SAC variants."""
+    if settings and name not in ("sac", "sac-paper"):
+        raise ValueError(f"agent {name!r} takes no settings, got {sorted(settings)}")
     if name == "sac":
         return SACProposer(dim, seed, SACSettings(**settings))
+    if name == "sac-paper":
+        return PaperSAC(dim, seed, PaperSACSettings(**settings))
     if name == "random":
         return RandomProposer(dim, seed)
-    raise ValueError(f"agent must be one of ['sac', 'random'], got {name!r}")
+    if name == "sobol":
+        from hmcore.agents.sobol import SobolProposer
+
+        return SobolProposer(dim, seed)
+    if name == "cmaes":
+        from hmcore.agents.cmaes import CMAProposer
+
+        return CMAProposer(dim, seed, workers)
+    if name == "de":
+        from hmcore.agents.de import DEProposer
+
+        return DEProposer(dim, seed, budget, workers)
+    if name == "bo":
+        from hmcore.agents.bo import BOProposer
+
+        return BOProposer(dim, seed)
+    if name == "lm":
+        from hmcore.agents.lm import LMDriver
+
+        return LMDriver(dim, seed)
+    if name == "esmda":
+        from hmcore.agents.esmda import ESMDADriver
+
+        return ESMDADriver(dim, seed)
+    raise ValueError(f"agent must be one of {list(AGENTS)}, got {name!r}")
 
 
-__all__ = ["Feedback", "Proposal", "Proposer", "RandomProposer", "SACProposer", "SACSettings",
-           "make_proposer"]
+def budget_problem(name: str, budget: int, workers: int) -> str | None:
+    """Why ``budget`` / ``workers`` cannot run method ``name`` (None when they can)."""
+    if name == "sac-paper" and budget % workers:
+        return (f"sac-paper steps its {workers} env copies together: the budget {budget} must "
+                f"be a multiple of the workers {workers} (e.g. "
+                f"{max(workers, budget // workers * workers)})")
+    if name == "esmda":
+        from hmcore.agents.esmda import plan
+
+        try:
+            plan(budget)
+        except ValueError as exc:
+            return str(exc)
+    return None
+
+
+__all__ = ["AGENTS", "Driver", "Feedback", "PaperSAC", "PaperSACSettings", "Proposal", "Proposer",
+           "RandomProposer", "SACProposer", "SACSettings", "budget_problem", "make_proposer"]

@@ -7,7 +7,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -17,6 +17,7 @@ class Proposal:
     action: np.ndarray          # shape (dim,), in [-1, 1]
     observation: np.ndarray     # what the agent saw when proposing: [a_prev, E_prev]
     lane: int = 0               # parallel stream the proposal belongs to
+    key: int = -1               # the proposer's own handle (a trial or population slot)
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,18 @@ class Proposer(Protocol):
     def recommend(self) -> np.ndarray:
         """The proposer's current best guess of the action (not necessarily evaluated)."""
         ...
+
+
+@runtime_checkable
+class Driver(Protocol):
+    """A method that runs its own loop (SB3's ``learn()``, say) instead of ask/tell: it is
+    handed the evaluator and returns every record in call order; it never runs the simulator
+    itself and replays ``done`` (journaled) calls instead of evaluating them."""
+
+    name: str
+
+    def drive(self, space, evaluate_batch, budget: int, workers: int,
+              done: dict[int, dict] | None = None) -> list[dict]: ...
 
 
 class LaneMemory:

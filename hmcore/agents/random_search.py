@@ -10,6 +10,7 @@ from hmcore.env import observation
 
 class RandomProposer:
     name = "random"
+    exploit_last = False  # its recommendation is a point already evaluated
 
     def __init__(self, dim: int, seed: int):
         self.dim = dim

@@ -41,6 +41,7 @@ class SACSettings:
 
 class SACProposer:
     name = "sac"
+    exploit_last = True  # the deterministic policy ends the campaign
 
     def __init__(self, dim: int, seed: int, settings: SACSettings | None = None):
         import torch

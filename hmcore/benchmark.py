@@ -1,0 +1,158 @@
+"""Equal-budget benchmark of calibration methods: what the campaigns' journals say, summarised.
+
+Nothing here runs a simulator. Input: one row per simulator call of every (method, seed)
+campaign (``method, seed, call`` (from 1), ``status, E, penalty, wall_time_s, sim_time_s,
+finished_at``), the floor (the truth's own E: where the truth is known, the E of its values;
+otherwise the deck's own values) and the prior-centre E (the box's centre, action 0).
+
+Per (method, seed): the best valid E after each call (``best``; FAIL and INVALID runs are never
+best), the first call at which it reaches 1.5x, 1.2x and 1.1x the floor, the fraction of the gap
+from the prior-centre E to the floor it has closed after 25, 50, 100 and 200 calls
+(``1 - (best - floor) / (centre - floor)``), failed and penalised calls, and wall time. Per
+method: medians across seeds (a level a seed never reached counts as never, so the median is
+"not reached" when most seeds miss it) and how many seeds reached each level.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+LEVELS = (1.5, 1.2, 1.1)
+MARKS = (25, 50, 100, 200)
+
+
+def case_truth(case_file: Path) -> dict[str, float] | None:
+    """Known true parameter values of a case: ``truth.json`` (``parameters``) beside the case
+    file (the synthetic case), or ``hidden_effect.json`` of a case ``hmflow hide`` wrote with
+    nothing hidden (its ``truth``: the globals the history was made with)."""
+    folder = Path(case_file).parent
+    truth = folder / "truth.json"
+    if truth.is_file():
+        return dict(json.loads(truth.read_text())["parameters"])
+    hidden = folder / "hidden_effect.json"
+    if hidden.is_file():
+        doc = json.loads(hidden.read_text())
+        if doc.get("effect") is None and doc.get("truth"):
+            return dict(doc["truth"])
+    return None
+
+
+def best_so_far(calls: pd.DataFrame) -> pd.DataFrame:
+    """``calls`` with ``best``: the running minimum of E over COMPLETE calls, per method and
+    seed, in call order (NaN until the first valid call)."""
+    calls = calls.sort_values(["method", "seed", "call"]).reset_index(drop=True)
+    valid = calls["E"].where(calls["status"] == "COMPLETE")
+    calls["best"] = valid.groupby([calls["method"], calls["seed"]]).cummin()
+    return calls
+
+
+def per_run(calls: pd.DataFrame, floor: float, centre: float) -> pd.DataFrame:
+    """One row per (method, seed): calls to each level, gap closed at each mark, best E,
+    failed and penalised calls, calls made, wall and simulator time."""
+    calls = best_so_far(calls)
+    rows = []
+    for (method, seed), g in calls.groupby(["method", "seed"], sort=False):
+        best = g["best"].to_numpy(float)
+        row = {"method": method, "seed": int(seed), "calls": len(g),
+               "best_E": float(np.nanmin(best)) if np.isfinite(best).any() else float("nan"),
+               "failed": int((g["status"] == "FAIL").sum()),
+               "penalised": int((g["status"] == "INVALID").sum())}
+        for level in LEVELS:
+            hit = np.flatnonzero(best <= level * floor)
+            row[f"calls_to_{level:g}x"] = float(g["call"].iloc[hit[0]]) if hit.size else math.inf
+        for mark in MARKS:
+            if len(g) >= mark:
+                b = best[mark - 1]
+                row[f"gap_closed_{mark}"] = (float(1.0 - (b - floor) / (centre - floor))
+                                             if np.isfinite(b) and centre > floor else float("nan"))
+            else:
+                row[f"gap_closed_{mark}"] = float("nan")
+        start = (g["finished_at"] - g["wall_time_s"]).min() if "finished_at" in g else np.nan
+        row["wall_min"] = float((g["finished_at"].max() - start) / 60.0) \
+            if "finished_at" in g else float("nan")
+        row["sim_min"] = float(g["sim_time_s"].sum() / 60.0)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def summary(runs: pd.DataFrame) -> pd.DataFrame:
+    """One row per method: medians across seeds (see the module docstring)."""
+    out = []
+    for method, g in runs.groupby("method", sort=False):
+        row = {"method": method, "seeds": len(g), "calls": int(g["calls"].median())}
+        for level in LEVELS:
+            col = f"calls_to_{level:g}x"
+            row[col] = float(np.median(g[col]))
+            row[f"reached_{level:g}x"] = int(np.isfinite(g[col]).sum())
+        for mark in MARKS:
+            col = f"gap_closed_{mark}"
+            row[col] = float(g[col].median()) if g[col].notna().any() else float("nan")
+        row["best_E_median"] = float(g["best_E"].median())
+        row["best_E_q25"] = float(g["best_E"].quantile(0.25))
+        row["best_E_q75"] = float(g["best_E"].quantile(0.75))
+        row["failed"] = int(g["failed"].sum())
+        row["penalised"] = int(g["penalised"].sum())
+        row["wall_min_median"] = float(g["wall_min"].median())
+        out.append(row)
+    return pd.DataFrame(out)
+
+
+def markdown(table: pd.DataFrame, floor: float, centre: float, case: str) -> str:
+    """The summary as a Markdown table, methods ordered by median calls to 1.1x the floor."""
+    order = table.sort_values(["calls_to_1.1x", "calls_to_1.2x", "best_E_median"])
+    head = ("| method | seeds | calls | to 1.5x | to 1.2x | to 1.1x | gap closed at 25 / 50 / "
+            "100 / 200 | best E median [IQR] | failed | penalised | wall min (median) |")
+    lines = [f"Case **{case}**: floor E {floor:.6g} (the truth's own), prior-centre E "
+             f"{centre:.6g}. Calls to a level: median over seeds (seeds that reached it).", "",
+             head, "|" + "---|" * 11]
+    for d in order.to_dict("records"):
+        def level(lv: str) -> str:
+            v, n = d[f"calls_to_{lv}x"], d[f"reached_{lv}x"]
+            return f"{v:.0f} ({n}/{d['seeds']})" if math.isfinite(v) else \
+                f"never ({n}/{d['seeds']})"
+
+        gaps = " / ".join("-" if not math.isfinite(d[f"gap_closed_{m}"]) else
+                          f"{d[f'gap_closed_{m}']:.2f}" for m in MARKS)
+        lines.append(f"| {d['method']} | {d['seeds']} | {d['calls']} | {level('1.5')} | "
+                     f"{level('1.2')} | {level('1.1')} | {gaps} | {_best(d)} | {d['failed']} | "
+                     f"{d['penalised']} | {d['wall_min_median']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _best(d: dict) -> str:
+    if not math.isfinite(d["best_E_median"]):
+        return "no valid call"
+    return f"{d['best_E_median']:.5g} [{d['best_E_q25']:.5g}, {d['best_E_q75']:.5g}]"
+
+
+def plot(calls: pd.DataFrame, floor: float, path: Path, title: str) -> None:
+    """Best-so-far E / floor against calls: median and interquartile band across seeds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    calls = best_so_far(calls)
+    fig, ax = plt.subplots(figsize=(8, 5), dpi=110)
+    for method, g in calls.groupby("method", sort=False):
+        wide = g.pivot(index="call", columns="seed", values="best") / floor
+        med = wide.median(axis=1, skipna=False)
+        ax.plot(wide.index, med, label=f"{method} ({wide.shape[1]} seeds)", lw=1.8)
+        ax.fill_between(wide.index, wide.quantile(0.25, axis=1), wide.quantile(0.75, axis=1),
+                        alpha=0.15)
+    for level in LEVELS:
+        ax.axhline(level, color="grey", lw=0.8, ls=":")
+    ax.set_yscale("log")
+    ax.set_xlabel("simulator calls")
+    ax.set_ylabel("best valid E so far / floor (truth's E)")
+    ax.set_title(title)
+    ax.legend(fontsize=8, ncols=2)
+    ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,69 @@
+"""Benchmark tasks: the two reference runs (floor and prior centre) and the consolidation of
+every (method, seed) campaign into Parquet, a Markdown table and a plot (no simulator there)."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from prefect import task
+from prefect.cache_policies import NO_CACHE
+
+from hmcore import benchmark
+from hmcore.calibration import Job
+from hmcore.case import Case
+from storage import ArtifactStore, EvaluationJournal, code_version
+
+REFERENCE_AGENT = "reference"
+
+
+def reference_jobs(case: Case) -> list[Job]:
+    """Call 0: the truth's values (known truth) or the deck's own; call 1: the box's centre."""
+    from hmcore.diagnosis.extensions import base_values
+
+    truth = benchmark.case_truth(case.source) or base_values(case.info, case.space)
+    truth = {n: float(truth[n]) for n in case.space.names}
+    centre = np.zeros(case.space.dim)
+    return [Job(0, truth, tuple(float(x) for x in case.space.to_action(truth)), 0, "floor"),
+            Job(1, case.space.to_values(centre), tuple(float(x) for x in centre), 1, "centre")]
+
+
+@task(name="consolidate-benchmark", cache_policy=NO_CACHE)
+def consolidate_bench(store_root: str, bench: str, campaigns: dict[str, tuple[str, int]],
+                      reference: str, case_name: str):
+    """``campaigns``: campaign name -> (method, seed). Writes ``calls.parquet`` (one row per
+    call), ``runs.parquet`` (one per method x seed), ``summary.parquet``, ``summary.md`` and
+    ``best_so_far.png`` as a version of ``<bench>/benchmark``."""
+    store = ArtifactStore(store_root)
+    ref = {r["index"]: r for r in EvaluationJournal(store, reference).rows()}
+    floor, centre = float(ref[0]["E"]), float(ref[1]["E"])
+    frames = []
+    for name, (method, seed) in campaigns.items():
+        rows = EvaluationJournal(store, name).rows()
+        frames.append(pd.DataFrame({
+            "method": method, "seed": seed, "call": [r["index"] + 1 for r in rows],
+            "status": [r["status"] for r in rows],
+            "E": [np.nan if r.get("E") is None else r["E"] for r in rows],
+            "penalty": [r.get("penalty") for r in rows],
+            "phase": [r.get("phase") for r in rows],
+            "wall_time_s": [r.get("wall_time_s") for r in rows],
+            "sim_time_s": [r.get("sim_time_s") for r in rows],
+            "finished_at": [r.get("finished_at", np.nan) for r in rows]}))
+    calls = benchmark.best_so_far(pd.concat(frames, ignore_index=True))
+    runs = benchmark.per_run(calls, floor, centre)
+    table = benchmark.summary(runs)
+    text = benchmark.markdown(table, floor, centre, case_name)
+    with tempfile.TemporaryDirectory() as tmp:
+        png = Path(tmp) / "best_so_far.png"
+        benchmark.plot(calls, floor, png, f"{case_name}: best-so-far E vs simulator calls")
+        files = {"calls.parquet": calls, "runs.parquet": runs, "summary.parquet": table,
+                 "summary.md": text, "best_so_far.png": png.read_bytes(),
+                 "references.json": {"floor_E": floor, "centre_E": centre,
+                                      "floor_values": ref[0]["params"],
+                                      "centre_values": ref[1]["params"]}}
+        journals = {name: len(EvaluationJournal(store, name).rows()) for name in campaigns}
+        return store.put_files(bench, "benchmark", {"campaigns": campaigns, "calls": journals,
+                                                    "reference": reference}, files,
+                               code_version())

@@ -1,0 +1,86 @@
+"""`hmflow bench` as a user types it: every method on the synthetic case with the real OPM
+Flow, a real Prefect server (temporary), real Parquet files; then a resumed benchmark."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from hmcore.agents import AGENTS
+from hmcore.benchmark import LEVELS, per_run, summary
+
+pytestmark = pytest.mark.opm
+BUDGET, SEEDS = 6, 2
+
+
+def hmflow(*args: str, cwd: Path, timeout: int = 900) -> subprocess.CompletedProcess:
+    env = {**os.environ, "COLUMNS": "200"}
+    return subprocess.run([sys.executable, "-m", "hmflow.cli", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=timeout, check=False)
+
+
+def test_bench_runs_every_method_and_seed_with_exactly_the_budgeted_calls(tmp_path):
+    common = ["bench", "--case", "synthetic", "--budget", str(BUDGET), "--workers", "2",
+              "--storage", str(tmp_path / "store"), "--name", "b"]
+    run = hmflow(*common, "--seeds", str(SEEDS), cwd=tmp_path)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    version = sorted((tmp_path / "store" / "b" / "benchmark").glob("v*"))[-1]
+    calls = pd.read_parquet(version / "calls.parquet")
+    # every method x seed, each with exactly the budget: LM's Jacobian runs and ES-MDA's
+    # ensemble members are calls like any other
+    counts = calls.groupby(["method", "seed"]).size()
+    assert set(counts.index) == {(m, s) for m in AGENTS for s in range(SEEDS)}
+    assert (counts == BUDGET).all(), counts.to_dict()
+    assert set(calls[calls.method == "lm"].phase) >= {"jacobian"}
+    assert set(calls[calls.method == "esmda"].phase) >= {"ensemble", "posterior"}
+    # each campaign's journal holds the same calls as the table
+    for (method, seed), n in counts.items():
+        journal = tmp_path / "store" / f"b-{method}-s{seed}" / "evaluations"
+        assert len(list(journal.glob("*.json"))) == n
+    table = pd.read_parquet(version / "summary.parquet")
+    assert sorted(table.method) == sorted(AGENTS) and (table.seeds == SEEDS).all()
+    text = (version / "summary.md").read_text()
+    assert all(f"| {m} |" in text for m in AGENTS) and "floor E" in text
+    png = (version / "best_so_far.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+    # the best-so-far column never picks a failed or penalised call
+    for _, g in calls.groupby(["method", "seed"]):
+        valid = g.E.where(g.status == "COMPLETE")
+        np.testing.assert_allclose(g.best.to_numpy(), valid.cummin().to_numpy())
+    assert "| method |" in run.stdout
+
+    # a rerun with one more seed resumes: the done campaigns are replayed, only the new seed runs
+    before = {p: p.stat().st_mtime_ns for p in (tmp_path / "store").glob("b-*-s0/evaluations/*")}
+    more = hmflow(*common, "--methods", "random,lm", "--seeds", str(SEEDS + 1), cwd=tmp_path)
+    assert more.returncode == 0, more.stdout[-3000:] + more.stderr[-3000:]
+    assert {p: p.stat().st_mtime_ns for p in before} == before   # nothing rewritten
+    newest = sorted((tmp_path / "store" / "b" / "benchmark").glob("v*"))[-1]
+    again = pd.read_parquet(newest / "calls.parquet")
+    assert set(again.method) == {"random", "lm"} and set(again.seed) == {0, 1, 2}
+
+
+def test_summary_counts_levels_and_gap_from_the_calls():
+    """Hand-made calls: levels reached, the gap closed and a seed that never gets there."""
+    floor, centre = 1.0, 3.0
+    rows = []
+    for seed, es in enumerate([[2.0, 1.4, 1.15, 1.05], [2.5, 2.0, "FAIL", 1.6]]):
+        for call, e in enumerate(es, start=1):
+            failed = e == "FAIL"
+            rows.append({"method": "m", "seed": seed, "call": call,
+                         "status": "FAIL" if failed else "COMPLETE",
+                         "E": np.nan if failed else e, "penalty": 0.0, "wall_time_s": 1.0,
+                         "sim_time_s": 1.0, "finished_at": 100.0 + call})
+    runs = per_run(pd.DataFrame(rows), floor, centre)
+    first = runs[runs.seed == 0].iloc[0]
+    assert [first[f"calls_to_{lv:g}x"] for lv in LEVELS] == [2.0, 3.0, 4.0]
+    second = runs[runs.seed == 1].iloc[0]
+    assert np.isinf(second["calls_to_1.5x"]) and second["failed"] == 1
+    table = summary(runs).iloc[0]
+    assert table["reached_1.1x"] == 1 and np.isinf(table["calls_to_1.1x"])  # median of 4, inf
+    assert np.isnan(first["gap_closed_25"])  # fewer calls than the mark: no value
