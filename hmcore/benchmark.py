@@ -47,7 +47,9 @@ def best_so_far(calls: pd.DataFrame) -> pd.DataFrame:
     seed, in call order (NaN until the first valid call)."""
     calls = calls.sort_values(["method", "seed", "call"]).reset_index(drop=True)
     valid = calls["E"].where(calls["status"] == "COMPLETE")
-    calls["best"] = valid.groupby([calls["method"], calls["seed"]]).cummin()
+    keys = [calls["method"], calls["seed"]]
+    # cummin leaves NaN at a NaN (an invalid call): carry the best forward over it
+    calls["best"] = valid.groupby(keys).cummin().groupby(keys).ffill()
     return calls
 
 

@@ -191,14 +191,19 @@ def _check_kv_kh(cells, factors, settings, found: _Found) -> None:
     r0 = kz[ok] / kh0[ok]
     r1 = (kz * factors.get("PERMZ", 1.0))[ok] / kh1[ok]
     lo, hi = settings.kv_kh_min, settings.kv_kh_max
-    share0 = np.mean((r0 < lo) | (r0 > hi))
-    share1 = np.mean((r1 < lo) | (r1 > hi))
-    grown = float(share1 - share0)
-    if grown > settings.kv_kh_max_fraction:
-        found.add(Check.KV_KH, grown - settings.kv_kh_max_fraction,
-                  f"kv/kh outside [{lo:g}, {hi:g}] in {100 * share1:.1f} % of the cells "
-                  f"(deck {100 * share0:.1f} %; at most +{100 * settings.kv_kh_max_fraction:g} "
-                  f"points allowed)")
+    _cell_share(found, Check.KV_KH, (r0 < lo) | (r0 > hi), (r1 < lo) | (r1 > hi),
+                settings.kv_kh_max_fraction, f"kv/kh outside [{lo:g}, {hi:g}]")
+
+
+def _cell_share(found: _Found, kind: Check, out_deck: np.ndarray, out_new: np.ndarray,
+                allowed: float, what: str) -> None:
+    """A cell check: the share of cells breaking it may grow by ``allowed`` over the deck's."""
+    share0, share1 = float(np.mean(out_deck)), float(np.mean(out_new))
+    grown = share1 - share0
+    if grown > allowed:
+        found.add(kind, grown - allowed,
+                  f"{what} in {100 * share1:.1f} % of the cells (deck {100 * share0:.1f} %; at "
+                  f"most +{100 * allowed:g} points allowed)")
 
 
 def poro_perm_trend(poro: np.ndarray, kh: np.ndarray) -> tuple[float, float, float]:
@@ -224,14 +229,10 @@ def _check_trend(cells, factors, settings, found: _Found) -> None:
     ok = (poro > 0) & (kh0 > 0)
     z0 = (np.log10(kh0[ok]) - (a + b * poro[ok])) / sd
     z1 = (np.log10(kh1[ok]) - (a + b * poro1[ok])) / sd
-    share0 = np.mean(np.abs(z0) > settings.trend_sd)
-    share1 = np.mean(np.abs(z1) > settings.trend_sd)
-    grown = float(share1 - share0)
-    if grown > settings.trend_max_fraction:
-        found.add(Check.PORO_PERM_TREND, grown - settings.trend_max_fraction,
-                  f"{100 * share1:.1f} % of the cells lie beyond {settings.trend_sd:g} sd of the "
-                  f"deck's porosity-permeability trend (deck {100 * share0:.1f} %; at most "
-                  f"+{100 * settings.trend_max_fraction:g} points allowed)")
+    _cell_share(found, Check.PORO_PERM_TREND, np.abs(z0) > settings.trend_sd,
+                np.abs(z1) > settings.trend_sd, settings.trend_max_fraction,
+                f"permeability beyond {settings.trend_sd:g} sd of the deck's "
+                "porosity-permeability trend")
 
 
 def _check_pore_volume(cells, factors, settings, found: _Found) -> None:

@@ -159,8 +159,14 @@ def test_tables_command_prints_the_papers_three_tables_from_storage(campaign, tm
     macro = next(line for line in text.splitlines() if line.startswith("| macro"))
     assert f"| {stored['macro']['nmse']:.4f} |" in macro and \
         f"| {100 / (1 + stored['macro']['nmse']):.2f} |" in macro
-    # one call by number (from 1); a call that does not exist is refused with the count
-    assert CliRunner().invoke(app, args + ["--call", "1"]).exit_code == 0
+    # one call by number (from 1); a failed call has no summary to score; a call that does
+    # not exist is refused with the count
+    rows = EvaluationJournal(ArtifactStore(campaign["storage"]), campaign["name"]).rows()
+    ok = next(r["index"] + 1 for r in rows if r["status"] != "FAIL")
+    assert CliRunner().invoke(app, args + ["--call", str(ok)]).exit_code == 0
+    failed = next(r["index"] + 1 for r in rows if r["status"] == "FAIL")
+    no_summary = CliRunner().invoke(app, args + ["--call", str(failed)])
+    assert no_summary.exit_code == 2 and "no summary file" in no_summary.output
     missing = CliRunner().invoke(app, args + ["--call", "99"])
     assert missing.exit_code == 2 and "has no call 99" in missing.output
     again = CliRunner().invoke(app, args + ["--markdown", str(md)])

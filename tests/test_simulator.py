@@ -280,7 +280,7 @@ def test_evaluate_scores_a_finished_run(punq_case, truth_run, tmp_path):
     assert ev.penalty == 0.0 and ev.reward == pytest.approx(-ev.E)
     assert ev.coverage == 1.0
     assert ev.sim_time_s == 3.5 and ev.wall_time_s >= 0.0
-    assert set(ev.metrics) == {"macro", "categories", "wells"}
+    assert set(ev.metrics) == {"macro", "categories", "wells", "excluded"}
 
 
 @pytest.mark.opm

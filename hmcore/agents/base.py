@@ -51,6 +51,36 @@ class Driver(Protocol):
               done: dict[int, dict] | None = None) -> list[dict]: ...
 
 
+class Sampler:
+    """A proposer that learns nothing (random search, Sobol'): subclasses draw ``_points(n)``
+    in [-1, 1]; it keeps each lane's observation and the best action told."""
+
+    exploit_last = False  # its recommendation is a point already evaluated
+
+    def __init__(self, dim: int):
+        self.dim = dim
+        self.lanes = LaneMemory(dim)
+        self._best: tuple[float, np.ndarray] | None = None
+
+    def _points(self, n: int) -> np.ndarray:
+        raise NotImplementedError
+
+    def ask(self, n: int) -> list[Proposal]:
+        return [Proposal(np.asarray(a, np.float32), self.lanes.get(i), i)
+                for i, a in enumerate(self._points(n))]
+
+    def tell(self, proposals: list[Proposal], feedback: list[Feedback]) -> None:
+        from hmcore.env import observation
+
+        for p, f in zip(proposals, feedback, strict=True):
+            self.lanes.set(p.lane, observation(p.action, f.e_obs))
+            if self._best is None or f.reward > self._best[0]:
+                self._best = (f.reward, p.action)
+
+    def recommend(self) -> np.ndarray:
+        return self._best[1] if self._best else np.zeros(self.dim, np.float32)
+
+
 class LaneMemory:
     """The last observation of each parallel lane (``[a_prev, E_prev]``, zeros at start)."""
 
