@@ -166,7 +166,7 @@ def test_tables_command_prints_the_papers_three_tables_from_storage(campaign, tm
     assert CliRunner().invoke(app, args + ["--call", str(ok)]).exit_code == 0
     failed = next(r["index"] + 1 for r in rows if r["status"] == "FAIL")
     no_summary = CliRunner().invoke(app, args + ["--call", str(failed)])
-    assert no_summary.exit_code == 2 and "no summary file" in no_summary.output
+    assert no_summary.exit_code == 2 and "no summary file" in " ".join(no_summary.output.split())
     missing = CliRunner().invoke(app, args + ["--call", "99"])
     assert missing.exit_code == 2 and "has no call 99" in missing.output
     again = CliRunner().invoke(app, args + ["--markdown", str(md)])
