@@ -18,10 +18,11 @@ from tasks.simulate import simulate
 
 def bench_names(case_name: str, methods: list[str], seeds: list[int], name: str | None = None
                 ) -> tuple[str, str, dict[str, tuple[str, int]]]:
-    """(benchmark name, reference campaign, {campaign: (method, seed)})."""
+    """(benchmark name, reference campaign, {campaign: (method, seed)}), seed by seed: a
+    benchmark stopped part-way has every method on its first seeds."""
     bench = name or f"bench-{case_name}"
-    return bench, f"{bench}-reference", {f"{bench}-{m}-s{s}": (m, s) for m in methods
-                                          for s in seeds}
+    return bench, f"{bench}-reference", {f"{bench}-{m}-s{s}": (m, s) for s in seeds
+                                          for m in methods}
 
 
 @flow(name="hmflow-bench", log_prints=True)

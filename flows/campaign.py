@@ -28,7 +28,8 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
     path = Path(store_root) / campaign / "campaign.json"
     if path.exists():
         before = json.loads(path.read_text())
-        diff = {k: (before.get(k), v) for k, v in settings.items() if before.get(k) != v}
+        diff = {k: (before.get(k), v) for k, v in settings.items()
+                if _comparable(k, before.get(k)) != _comparable(k, v)}
         if diff:
             raise ValueError(f"campaign '{campaign}' in {store_root} was started with other "
                              f"settings {diff} (stored, given); choose another --campaign name")
@@ -37,6 +38,14 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(settings, indent=2))
     tmp.replace(path)
+
+
+def _comparable(key: str, value):
+    """The case is the same case when its stored content is: a new version of the same content
+    (written by newer hmflow code) resumes the campaign; other content never does."""
+    if key == "case_artifact" and isinstance(value, dict):
+        return value.get("content_hash")
+    return value
 
 
 @flow(name="hmflow-campaign", log_prints=True)

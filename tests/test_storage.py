@@ -499,3 +499,21 @@ def test_storage_is_a_plain_library():
             "('prefect', 'hmcore', 'tasks', 'flows')]; assert not bad, bad")
     subprocess.run([os.sys.executable, "-c", code], check=True, timeout=60,
                    cwd=Path(__file__).resolve().parents[1])
+
+
+def test_campaign_resumes_on_a_new_version_of_the_same_case_content(tmp_path):
+    """Newer hmflow code writes a new case version of the same content: the campaign resumes;
+    other content under the same name is refused."""
+    from flows.campaign import check_campaign_settings
+
+    def settings(version: int, content: str) -> dict:
+        return {"case_artifact": {"campaign": "c", "step": "case", "version": version,
+                                  "content_hash": content}, "agent": "sac", "seed": 0,
+                "agent_settings": {}}
+
+    check_campaign_settings(str(tmp_path), "c", settings(1, "aaa"))
+    check_campaign_settings(str(tmp_path), "c", settings(2, "aaa"))  # same content: resumes
+    with pytest.raises(ValueError, match="other settings"):
+        check_campaign_settings(str(tmp_path), "c", settings(3, "bbb"))
+    with pytest.raises(ValueError, match="other settings"):
+        check_campaign_settings(str(tmp_path), "c", {**settings(2, "aaa"), "seed": 1})
