@@ -25,10 +25,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tomllib
 from pathlib import Path
 from typing import Any
 from uuid import UUID
+
+from hmcore.agents import AGENTS
+from hmcore.case import BUILTIN_CASES, case_name
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CAMPAIGN_ENTRYPOINT = "flows/campaign.py:campaign_flow"
@@ -39,7 +41,6 @@ DEFAULT_POOL = "hmflow-process"
 DEFAULT_NAME = "nightly"
 DEFAULT_CRON = "0 2 * * *"
 DEFAULT_STORAGE = "./hmflow-storage"
-BUILTIN_CASES = ("synthetic",)
 
 
 def ensure_work_pool(name: str = DEFAULT_POOL):
@@ -66,23 +67,6 @@ def ensure_work_pool(name: str = DEFAULT_POOL):
         raise ValueError(f"work pool {name!r} exists with type {pool.type!r}; hmflow deploys to a "
                          f"'process' pool: choose another --pool name")
     return pool
-
-
-def case_name(case: str) -> str:
-    """The ``[case] name`` of a case TOML (cheap: no deck or history is read), or the name of a
-    built-in case."""
-    if case in BUILTIN_CASES:
-        return case
-    path = Path(case)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError as exc:
-        raise ValueError(f"case file {path} not found; give a TOML path or one of the built-in "
-                         f"cases {BUILTIN_CASES}") from exc
-    name = (data.get("case") or {}).get("name")
-    if not isinstance(name, str) or not name:
-        raise ValueError(f"{path}: [case] name is missing")
-    return name
 
 
 def campaign_parameters(case: str = "synthetic", agent: str = "sac", budget: int = 200,
@@ -128,24 +112,58 @@ def _apply(deployment, work_pool: str) -> UUID:
     return deployment.apply(work_pool_name=work_pool)
 
 
+def report_deployment_name(name: str) -> str:
+    """The report-only deployment of campaign deployment ``name``: its own name in the UI."""
+    return f"{name}-report"
+
+
+def list_deployments() -> list[dict[str, Any]]:
+    """hmflow's deployments on the configured server: flow/name, schedules, pool, parameters."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowFilter, FlowFilterName
+
+    out = []
+    with get_client(sync_client=True) as client:
+        flows = {f.id: f.name for f in client.read_flows(
+            flow_filter=FlowFilter(name=FlowFilterName(any_=[CAMPAIGN_FLOW_NAME,
+                                                             REPORT_FLOW_NAME])), limit=50)}
+        if not flows:
+            return out
+        for dep in client.read_deployments(flow_filter=FlowFilter(
+                name=FlowFilterName(any_=list(flows.values()))), limit=200):
+            when = [getattr(s.schedule, "cron", None) or
+                    f"every {int(s.schedule.interval.total_seconds())} s"
+                    for s in (dep.schedules or []) if s.schedule is not None]
+            out.append({"deployment": f"{flows.get(dep.flow_id, '?')}/{dep.name}",
+                        "schedule": ", ".join(when) or "none", "pool": dep.work_pool_name,
+                        "paused": bool(dep.paused), "parameters": dict(dep.parameters)})
+    return sorted(out, key=lambda d: d["deployment"])
+
+
 def deploy_campaign(name: str = DEFAULT_NAME, cron: str | None = DEFAULT_CRON,
                     timezone: str = "UTC", parameters: dict[str, Any] | None = None,
                     work_pool: str = DEFAULT_POOL, paused: bool = False,
                     concurrency_limit: int | None = 1,
-                    tags: list[str] | None = None) -> UUID:
+                    tags: list[str] | None = None, interval_s: float | None = None) -> UUID:
     """Deploy ``flows/campaign.py:campaign_flow`` from this checkout as
-    ``hmflow-campaign/<name>`` on ``work_pool``, run on ``cron`` in ``timezone`` (no schedule
-    when ``cron`` is None); return the deployment id. Redeploying the same name updates it.
+    ``hmflow-campaign/<name>`` on ``work_pool``, run on ``cron`` in ``timezone`` or every
+    ``interval_s`` seconds (no schedule when both are None); return the deployment id.
+    Redeploying the same name updates it.
 
     ``parameters`` are the flow's parameters (see :func:`campaign_parameters`); ``storage`` and
     a case file path are made absolute. ``concurrency_limit`` (default 1) is the deployment's
     Prefect concurrency limit, so that two runs do not work on the same campaign at once."""
+    from datetime import timedelta
+
     from prefect import Flow
-    from prefect.schedules import Cron
+    from prefect.schedules import Cron, Interval
 
     params = _absolute_paths(parameters or campaign_parameters())
     flow = Flow.from_source(source=str(REPO_ROOT), entrypoint=CAMPAIGN_ENTRYPOINT)
-    schedules = [Cron(cron, timezone=timezone)] if cron else None
+    if cron and interval_s:
+        raise ValueError("give a cron or an interval, not both")
+    schedules = ([Cron(cron, timezone=timezone)] if cron else
+                 [Interval(timedelta(seconds=interval_s))] if interval_s else None)
     deployment = flow.to_deployment(
         name=name, work_pool_name=work_pool, schedules=schedules, parameters=params,
         paused=paused, concurrency_limit=concurrency_limit, tags=tags or ["hmflow"],
@@ -160,7 +178,8 @@ def deploy_report(name: str = DEFAULT_NAME, storage: str | Path = DEFAULT_STORAG
                   campaign: str | None = None, work_pool: str = DEFAULT_POOL,
                   tags: list[str] | None = None) -> UUID:
     """Deploy ``flows/report.py:report_flow`` (no schedule) as ``hmflow-report/<name>``: it
-    rebuilds a campaign's report from stored artifacts, with zero simulator calls. ``storage``
+    rebuilds a campaign's report from stored artifacts, with zero simulator calls (named
+    :func:`report_deployment_name` of the campaign's deployment by the CLIs). ``storage``
     and ``campaign`` are its default parameters (changeable per run from the UI/CLI)."""
     from prefect import Flow
 
@@ -187,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timezone", default="UTC", help="IANA timezone of the cron (default %(default)s)")
     p.add_argument("--no-schedule", action="store_true", help="deploy without a schedule")
     p.add_argument("--case", default="synthetic", help="case TOML or 'synthetic' (default %(default)s)")
-    p.add_argument("--agent", default="sac", choices=["sac", "random"])
+    p.add_argument("--agent", default="sac", choices=list(AGENTS))
     p.add_argument("--budget", type=int, default=200, help="simulator calls (default %(default)s)")
     p.add_argument("--workers", type=int, default=2, help="simulations at once (default %(default)s)")
     p.add_argument("--seed", type=int, default=0)
@@ -220,9 +239,10 @@ def main(argv: list[str] | None = None) -> int:
     when = f"cron '{cron}' ({args.timezone})" if cron else "no schedule"
     print(f"deployment '{CAMPAIGN_FLOW_NAME}/{args.name}' {dep_id}: {when}, parameters {params}")
     if not args.no_report:
-        rep_id = deploy_report(args.name, storage=params["storage"], campaign=params["campaign"],
+        rep_name = report_deployment_name(args.name)
+        rep_id = deploy_report(rep_name, storage=params["storage"], campaign=params["campaign"],
                                work_pool=args.pool)
-        print(f"deployment '{REPORT_FLOW_NAME}/{args.name}' {rep_id}: no schedule, parameters "
+        print(f"deployment '{REPORT_FLOW_NAME}/{rep_name}' {rep_id}: no schedule, parameters "
               f"storage={params['storage']}, campaign={params['campaign']}")
     print(f"next: prefect worker start --pool {args.pool}\n"
           f"      prefect deployment run '{CAMPAIGN_FLOW_NAME}/{args.name}'")

@@ -10,6 +10,7 @@ from prefect import flow, get_run_logger
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from flows.campaign import DEFAULT_STORAGE, campaign_flow, check_campaign_settings
+from flows.labels import named_run
 from storage import ArtifactStore, EvaluationJournal
 from tasks.bench import REFERENCE_AGENT, consolidate_bench, reference_jobs
 from tasks.case import prepare_deck, validate_case
@@ -25,7 +26,7 @@ def bench_names(case_name: str, methods: list[str], seeds: list[int], name: str 
                                           for m in methods}
 
 
-@flow(name="hmflow-bench", log_prints=True)
+@flow(name="hmflow-bench", log_prints=True, flow_run_name=named_run("name", "bench"))
 def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
                seeds: list[int] | None = None, budget: int = 100, workers: int = 2,
                storage: str = DEFAULT_STORAGE, name: str | None = None) -> dict:

@@ -6,10 +6,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from typing import Annotated, Literal
+
 from prefect import flow, get_run_logger
+from pydantic import Field
 
 from hmcore.agents import make_proposer
 from hmcore.calibration import Job, calibrate
+from flows.labels import Progress, campaign_run_name, tag_flow_run
 from storage import ArtifactStore, EvaluationJournal
 from tasks.case import prepare_deck, validate_case
 from tasks.results import archive_best, consolidate, report
@@ -48,15 +52,33 @@ def _comparable(key: str, value):
     return value
 
 
-@flow(name="hmflow-campaign", log_prints=True)
-def campaign_flow(case: str = "synthetic", agent: str = "sac", budget: int = 200, workers: int = 2,
-                  seed: int = 0, storage: str = DEFAULT_STORAGE, campaign: str | None = None,
+Agent = Literal["sac", "sac-paper", "random", "sobol", "cmaes", "de", "bo", "lm", "esmda"]
+
+
+@flow(name="hmflow-campaign", log_prints=True, flow_run_name=campaign_run_name)
+def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
+                  budget: Annotated[int, Field(ge=1)] = 200,
+                  workers: Annotated[int, Field(ge=1)] = 2, seed: Annotated[int, Field(ge=0)] = 0,
+                  storage: str = DEFAULT_STORAGE, campaign: str | None = None,
                   agent_settings: dict | None = None) -> dict:
-    """Calibrate ``case`` with ``budget`` simulator calls, ``workers`` at a time."""
+    """Calibrate ``case`` with ``budget`` simulator calls, ``workers`` at a time.
+
+    Args:
+        case: Case TOML file (an absolute path on the worker) or the built-in 'synthetic'.
+        agent: Calibration method: sac (hmflow's default), sac-paper (the reference paper's
+            SAC), or a baseline (random, sobol, cmaes, de, bo, lm, esmda).
+        budget: Simulator calls in all; a rerun with a larger budget continues the campaign.
+        workers: Simulations at once.
+        seed: Seed of the method.
+        storage: Artifact store directory.
+        campaign: Campaign name; the same name resumes (default CASE-AGENT-seedS).
+        agent_settings: Settings of sac or sac-paper (advanced; see hmcore.agents).
+    """
     logger = get_run_logger()
     storage = str(Path(storage).resolve())
     loaded = validate_case(case)
     campaign = campaign or default_campaign_name(loaded.name, agent, seed)
+    tag_flow_run("hmflow", f"case:{loaded.name}", f"agent:{agent}", f"seed:{seed}")
     case_version = prepare_deck(loaded, case, storage, campaign)
     check_campaign_settings(storage, campaign, {
         "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
@@ -69,11 +91,15 @@ def campaign_flow(case: str = "synthetic", agent: str = "sac", budget: int = 200
                              **(agent_settings or {}))
     observations = (observation_set(loaded) if getattr(proposer, "needs_residuals", False)
                     else None)
+    progress = Progress(campaign, budget)
+    progress.update([r for i, r in done.items() if i < budget])
 
     def evaluate_batch(jobs: list[Job]) -> list[dict]:
         futures = [simulate.submit(loaded, job, storage, campaign, seed, agent, observations)
                    for job in jobs]
-        return [f.result() for f in futures]
+        records = [f.result() for f in futures]
+        progress.update(records)
+        return records
 
     calibrate(proposer, loaded.space, evaluate_batch, budget, workers, done)
     results = consolidate(storage, campaign, loaded.space.names)

@@ -143,6 +143,25 @@ class Case:
         return Case(**{**self.__dict__, "space": space})
 
 
+def case_name(case: str | Path) -> str:
+    """The ``[case] name`` of a case TOML (cheap: no deck or history is read), or the name of a
+    built-in case; ValueError when the file or the name is missing."""
+    if str(case) in BUILTIN_CASES:
+        return str(case)
+    path = Path(case)
+    if not path.is_file():
+        raise ValueError(f"case file {path} not found; give a TOML path or one of the built-in "
+                         f"cases {BUILTIN_CASES}")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"case file {path} cannot be read as TOML ({exc})") from exc
+    name = (data.get("case") or {}).get("name")
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{path}: [case] name is missing")
+    return name
+
+
 def resolve_case_path(case: str | Path) -> Path:
     """A TOML path as given, or the built-in case name ``synthetic`` (generated on first use)."""
     if str(case) == "synthetic":

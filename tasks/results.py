@@ -7,9 +7,11 @@ import shutil
 from pathlib import Path
 
 from prefect import task
-from prefect.artifacts import create_markdown_artifact, create_table_artifact
+from prefect.artifacts import (create_link_artifact, create_markdown_artifact,
+                               create_table_artifact)
 from prefect.cache_policies import NO_CACHE
 
+from flows.labels import artifact_key
 from hmcore.calibration import best_record
 from hmcore.report import build_report, to_jsonable
 from hmcore.results import results_table
@@ -81,15 +83,28 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
             files[name] = diagnosis.file(name).read_bytes()
     version = store.put_files(campaign, "report", inputs, files, code_version())
     if publish_prefect_artifacts:
-        key = "".join(ch if ch.isalnum() else "-" for ch in campaign.lower())
-        create_markdown_artifact(markdown, key=f"{key}-report", description=f"hmflow report {campaign}")
-        if doc.get("category_table"):
-            create_table_artifact(doc["category_table"], key=f"{key}-categories",
-                                  description="match by category (best case)")
-        if doc.get("well_table"):
-            create_table_artifact(doc["well_table"], key=f"{key}-wells",
-                                  description="C_match (%) per well and response (best case)")
+        publish(campaign, markdown, best_doc, version.file("report.md"))
     return version
+
+
+def publish(campaign: str, markdown: str, best_doc: dict | None, report_md: Path) -> None:
+    """The report as Prefect artifacts: the Markdown, a link to the stored file, and the paper's
+    three tables of the best case in the paper's rounding."""
+    from hmcore.paper_tables import paper_tables
+
+    create_markdown_artifact(markdown, key=artifact_key(campaign, "report"),
+                             description=f"hmflow report {campaign}")
+    create_link_artifact(report_md.resolve().as_uri(), link_text=f"{campaign}: report.md",
+                         key=artifact_key(campaign, "report-file"),
+                         description="the stored report (versioned, rebuilt by hmflow report)")
+    if not best_doc:
+        return
+    heads = {"categories": "match by category (best case)",
+             "wells": "C_match (%) per well and category (best case)",
+             "ratios": "GOR and water cut per well: records used, left out and why (best case)"}
+    for name, df in paper_tables(best_doc["metrics"]).items():
+        create_table_artifact(to_jsonable(df.to_dict(orient="records")),
+                              key=artifact_key(campaign, name), description=heads[name])
 
 
 def _truth_for(case_doc: dict) -> dict | None:

@@ -8,6 +8,7 @@ from pathlib import Path
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
+from flows.labels import simulate_run_name
 from hmcore.calibration import Job
 from hmcore.case import Case
 from hmcore.evaluation import evaluate
@@ -65,7 +66,7 @@ def observation_set(case: Case):
 
 
 @task(name="simulate", cache_policy=NO_CACHE, retries=2, retry_delay_seconds=1,
-      retry_condition_fn=retry_transient)
+      retry_condition_fn=retry_transient, task_run_name=simulate_run_name)
 def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, agent: str,
              observations=None) -> dict:
     """Evaluate ``job`` and journal the record; transient failures raise to be retried. With

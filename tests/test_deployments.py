@@ -205,15 +205,15 @@ def _artifacts_of(flow_run_id) -> list:
     or later the server refuses the nulls that ``read_artifacts()`` sends for the ones left out
     (422); fastapi is pinned below 0.151, and the explicit query keeps working either way."""
     from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import (ArtifactFilter, FlowRunFilter, FlowRunFilterId,
-                                                TaskRunFilter)
+    from prefect.client.schemas.filters import ArtifactFilter, FlowRunFilter, FlowRunFilterId
     from prefect.client.schemas.sorting import ArtifactSort
 
     with get_client(sync_client=True) as client:
         return client.read_artifacts(
             artifact_filter=ArtifactFilter(),
             flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])),
-            task_run_filter=TaskRunFilter(), sort=ArtifactSort.KEY_ASC, limit=50, offset=0)
+            sort=ArtifactSort.KEY_ASC, limit=50, offset=0)  # no task-run filter: it would
+        #   leave out the artifacts made by the flow itself (the progress), not by a task
 
 
 def _journal(storage: Path) -> list[dict]:
@@ -265,9 +265,25 @@ def test_scheduled_campaign_deployment_runs_on_a_process_worker(deployed, worker
     assert len(_run_dirs(storage)) == BUDGET
 
     keys = {a.key for a in _artifacts_of(flow_run.id)}
-    assert {f"{CAMPAIGN}-report", f"{CAMPAIGN}-categories", f"{CAMPAIGN}-wells"} <= keys, keys
-    types = {a.key: a.type for a in _artifacts_of(flow_run.id)}
-    assert types[f"{CAMPAIGN}-report"] == "markdown" and types[f"{CAMPAIGN}-wells"] == "table"
+    assert {f"{CAMPAIGN}-report", f"{CAMPAIGN}-categories", f"{CAMPAIGN}-wells",
+            f"{CAMPAIGN}-ratios", f"{CAMPAIGN}-progress", f"{CAMPAIGN}-report-file"} <= keys, keys
+    arts = {a.key: a for a in _artifacts_of(flow_run.id)}
+    assert arts[f"{CAMPAIGN}-report"].type == "markdown" and arts[f"{CAMPAIGN}-wells"].type == "table"
+    assert arts[f"{CAMPAIGN}-progress"].type == "progress"
+    assert float(arts[f"{CAMPAIGN}-progress"].data) == 100.0
+    assert f"{BUDGET}/{BUDGET} calls" in arts[f"{CAMPAIGN}-progress"].description
+    assert arts[f"{CAMPAIGN}-report-file"].type == "markdown"  # a link artifact renders as one
+    # the UI tells what is happening: the run is named after the campaign, tagged, and its
+    # simulator task runs carry their call numbers
+    with get_client(sync_client=True) as client:
+        run = client.read_flow_run(flow_run.id)
+        from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+        tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(
+            id=FlowRunFilterId(any_=[flow_run.id])), limit=100)
+    assert run.name.startswith(f"{CAMPAIGN}-"), run.name
+    assert {"case:punqs3", "agent:random", "seed:0"} <= set(run.tags), run.tags
+    sims = sorted(t.name for t in tasks if t.name.startswith("sim-"))
+    assert sims == [f"sim-{i:03d}" for i in range(1, BUDGET + 1)], [t.name for t in tasks]
 
     # the report-only deployment: a new report from stored artifacts, no simulator call
     journal_before = [(r["index"], r["run_dir"]) for r in rows]
@@ -294,12 +310,13 @@ def test_cli_creates_pool_and_both_deployments(prefect_server, tmp_path):
          "--budget", "3", "--storage", "rel-store", "--campaign", "cli-campaign"],
         cwd=tmp_path, env=prefect_server["env"], capture_output=True, text=True, timeout=100)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "hmflow-campaign/cli-check" in proc.stdout and "hmflow-report/cli-check" in proc.stdout
+    assert "hmflow-campaign/cli-check" in proc.stdout
+    assert "hmflow-report/cli-check-report" in proc.stdout  # its own name in the UI
     with temporary_settings(updates={PREFECT_API_URL: prefect_server["api"]}):
         with get_client(sync_client=True) as client:
             assert client.read_work_pool(pool).type == "process"
             dep = client.read_deployment_by_name("hmflow-campaign/cli-check")
-            rep = client.read_deployment_by_name("hmflow-report/cli-check")
+            rep = client.read_deployment_by_name("hmflow-report/cli-check-report")
     assert dep.schedules[0].schedule.cron == "30 3 * * 1"
     assert dep.schedules[0].schedule.timezone == "Europe/Oslo"
     assert dep.parameters["storage"] == str((tmp_path / "rel-store").resolve())
@@ -321,3 +338,37 @@ def test_cli_refuses_to_deploy_without_a_configured_server(prefect_server, tmp_p
     proc = subprocess.run([sys.executable, "-m", "deployments.campaign"], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "PREFECT_API_URL" in proc.stderr, proc.stderr
+
+
+@pytest.mark.timeout(180)
+def test_hmflow_deploy_interval_and_list(prefect_server, tmp_path):
+    """`hmflow deploy` (the CLI users are told to use): an interval schedule, the report-only
+    deployment under its own name, tags, and `--list`; a bad agent is refused before deploying."""
+    env = dict(prefect_server["env"], COLUMNS="250")
+
+    def hmflow(*args):
+        return subprocess.run([sys.executable, "-m", "hmflow.cli", *args], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=120)
+
+    bad = hmflow("deploy", "--name", "x", "--agent", "ppo")
+    assert bad.returncode == 2 and "--agent must be one of" in bad.stderr
+    ok = hmflow("deploy", "--name", "hourly", "--pool", "hmflow-deploy-pool", "--interval",
+                "3600", "--agent", "cmaes", "--budget", "8", "--storage", "s")
+    assert ok.returncode == 0, ok.stdout + ok.stderr
+    assert "hmflow-campaign/hourly" in ok.stdout and "every 3600 s" in ok.stdout
+    assert "hmflow-report/hourly-report" in ok.stdout
+    listed = hmflow("deploy", "--list")
+    assert listed.returncode == 0, listed.stdout + listed.stderr
+    lines = [line for line in listed.stdout.splitlines() if "hourly" in line]
+    assert any("hmflow-campaign/hourly" in line and "every 3600 s" in line and "cmaes" in line
+               for line in lines), listed.stdout
+    assert any("hmflow-report/hourly-report" in line and "none" in line for line in lines)
+    from prefect.client.orchestration import get_client
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    with temporary_settings(updates={PREFECT_API_URL: prefect_server["api"]}):
+        with get_client(sync_client=True) as client:
+            dep = client.read_deployment_by_name("hmflow-campaign/hourly")
+    assert dep.schedules[0].schedule.interval.total_seconds() == 3600
+    assert {"hmflow", "case:synthetic", "agent:cmaes"} <= set(dep.tags)
+    assert dep.parameters["agent"] == "cmaes" and dep.parameters["budget"] == 8
