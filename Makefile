@@ -1,6 +1,6 @@
 # The two commands of the README. Both create ./.venv and install hmflow into it first.
 #   make run    - install, then run the main job (a 200-call SAC campaign on the built-in synthetic case)
-#   make test   - install (with test extras and Debian's OPM `flow` when apt is usable), then run the tests
+#   make test   - install (with test extras, Debian's OPM `flow` and chromium when apt is usable), then run the tests
 #                 (real OPM, Prefect and Parquet integration tests included; `-m slow` ones are the long sweeps)
 PY ?= python3
 VENV := .venv
@@ -23,6 +23,10 @@ install-test: install
 	command -v flow >/dev/null || (command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ] && \
 	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q libopm-simulators-bin >/dev/null) || \
 	  echo "note: Debian's flow is not installed; the command-line backend tests will be skipped"
+	command -v chromium >/dev/null || (command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ] && \
+	  (apt-get install -y -q chromium >/dev/null 2>&1 || (apt-get update -q >/dev/null && \
+	   DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >/dev/null))) || \
+	  echo "note: Debian's chromium is not installed; the browser tests of the Prefect UI will be skipped"
 
 run: install
 	$(BIN)/hmflow run

@@ -9,6 +9,8 @@ Server, worker and every process they started are stopped in the fixtures' teard
 
 from __future__ import annotations
 
+import contextlib
+
 import datetime as dt
 import json
 import os
@@ -103,18 +105,18 @@ def _tail(path: Path, n: int = 4000) -> str:
         return "(no log)"
 
 
-@pytest.fixture(scope="module")
-def prefect_server(tmp_path_factory):
-    """A real `prefect server start` on a free loopback port with a temporary PREFECT_HOME."""
-    root = tmp_path_factory.mktemp("prefect-server")
+@contextlib.contextmanager
+def serve_prefect(root: Path, ui: bool = False):
+    """A real `prefect server start` on a free loopback port with a temporary PREFECT_HOME under
+    ``root`` (with its web UI when ``ui``); yields its API URL, home, env, root and log."""
     home = root / "home"
     home.mkdir()
     port = _free_port()
     api = f"http://127.0.0.1:{port}/api"
     env = _isolated_env(home, api)
     log = root / "server.log"
-    proc = _start([str(PREFECT), "server", "start", "--host", "127.0.0.1", "--port", str(port),
-                   "--no-ui"], env, log)
+    cmd = [str(PREFECT), "server", "start", "--host", "127.0.0.1", "--port", str(port)]
+    proc = _start(cmd + ([] if ui else ["--no-ui"]), env, log)
     try:
         deadline = time.monotonic() + 120
         while True:
@@ -129,9 +131,17 @@ def prefect_server(tmp_path_factory):
             if time.monotonic() > deadline:
                 pytest.fail(f"prefect server not healthy after 120 s:\n{_tail(log)}")
             time.sleep(0.5)
-        yield {"api": api, "home": home, "env": env, "root": root, "log": log}
+        yield {"api": api, "ui": api[: -len("/api")], "home": home, "env": env, "root": root,
+               "log": log}
     finally:
         _stop(proc)
+
+
+@pytest.fixture(scope="module")
+def prefect_server(tmp_path_factory):
+    """A real `prefect server start` (no UI) for the tests of this module."""
+    with serve_prefect(tmp_path_factory.mktemp("prefect-server")) as server:
+        yield server
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,73 @@
+"""The Prefect UI of a finished campaign, in a real headless browser (Debian's chromium): the
+flow run named after the campaign, its task runs with call numbers, and its artifacts."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from test_deployments import serve_prefect  # a real `prefect server start`, here with its UI
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CAMPAIGN = "ui-check"
+BUDGET = 3
+
+pytestmark = [pytest.mark.opm,
+              pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed "
+                                 "(make test installs it when run as root with apt)")]
+
+
+def render(url: str, out: Path | None = None) -> str:
+    """The page's DOM after its scripts ran (and a screenshot into ``out``)."""
+    args = [CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+            "--window-size=1500,1000", "--virtual-time-budget=20000"]
+    if out is not None:
+        subprocess.run(args + [f"--screenshot={out}", url], capture_output=True, timeout=120,
+                       check=True)
+    dom = subprocess.run(args + ["--dump-dom", url], capture_output=True, text=True, timeout=120,
+                         check=True)
+    return dom.stdout
+
+
+@pytest.fixture(scope="module")
+def finished_campaign(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ui")
+    with serve_prefect(root, ui=True) as server:
+        run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--budget", str(BUDGET),
+                              "--agent", "random", "--seed", "1", "--campaign", CAMPAIGN,
+                              "--storage", str(root / "store")], cwd=root, env=server["env"],
+                             capture_output=True, text=True, timeout=600)
+        assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+        from prefect.client.orchestration import get_client
+        from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterName
+        from prefect.settings import PREFECT_API_URL, temporary_settings
+
+        with temporary_settings(updates={PREFECT_API_URL: server["api"]}):
+            with get_client(sync_client=True) as client:
+                runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(
+                    name=FlowRunFilterName(like_=CAMPAIGN)), limit=5)
+        assert len(runs) == 1, [r.name for r in runs]
+        yield {**server, "run": runs[0], "root": root}
+
+
+def test_ui_shows_the_named_run_its_call_numbered_tasks_and_artifacts(finished_campaign):
+    run, ui = finished_campaign["run"], finished_campaign["ui"]
+    shot = finished_campaign["root"] / "flow-run.png"
+    page = render(f"{ui}/runs/flow-run/{run.id}", shot)
+    assert run.name.startswith(f"{CAMPAIGN}-") and run.name in page
+    for i in range(1, BUDGET + 1):
+        assert f"sim-{i:03d}" in page, f"sim-{i:03d} not on the flow run page"
+    for tag in ("case:synthetic", "agent:random", "seed:1"):
+        assert tag in page
+    png = shot.read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 30_000  # a page, not a blank
+    artifacts = render(f"{ui}/artifacts")
+    for key in ("progress", "report", "categories", "wells", "ratios"):
+        assert f"{CAMPAIGN}-{key}" in artifacts, f"{CAMPAIGN}-{key} not on the artifacts page"
+    # the progress artifact's page: the calls done of the budget and the best E so far
+    progress = render(f"{ui}/artifacts/key/{CAMPAIGN}-progress")
+    assert f"{BUDGET}/{BUDGET} calls" in progress and "best E so far" in progress
