@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m deployments.campaign",
         description="Create the process work pool if missing, deploy the scheduled campaign "
-                    "(hmflow-campaign/NAME) and the report-only flow (hmflow-report/NAME). "
+                    "(hmflow-campaign/NAME) and the report-only flow (hmflow-report/NAME-report). "
                     "Uses the Prefect API of the current profile (PREFECT_API_URL).")
     p.add_argument("--name", default=DEFAULT_NAME, help="deployment name (default %(default)s)")
     p.add_argument("--pool", default=DEFAULT_POOL, help="process work pool (default %(default)s)")

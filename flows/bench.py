@@ -12,6 +12,8 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from flows.campaign import DEFAULT_STORAGE, campaign_flow, check_campaign_settings
 from flows.labels import named_run
 from storage import ArtifactStore, EvaluationJournal
+from hmcore.benchmark import case_truth
+from hmcore.evaluation import SCORING_VERSION
 from tasks.bench import REFERENCE_AGENT, consolidate_bench, reference_jobs
 from tasks.case import prepare_deck, validate_case
 from tasks.simulate import simulate
@@ -42,7 +44,12 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
     case_version = prepare_deck(loaded, case, storage, reference)
     check_campaign_settings(storage, reference, {"case_artifact": case_version.ref(),
                                                  "agent": REFERENCE_AGENT, "seed": 0,
-                                                 "agent_settings": {}})
+                                                 "agent_settings": {},
+                                                 "scoring_version": SCORING_VERSION})
+    # one benchmark, one budget: methods compared at another budget or worker count are
+    # another benchmark (another --name)
+    check_campaign_settings(storage, bench, {"case_artifact": case_version.ref(),
+                                             "budget": budget, "workers": workers})
     journal = EvaluationJournal(ArtifactStore(storage), reference)
     done = {r["index"] for r in journal.rows()}
     futures = [simulate.submit(loaded, job, storage, reference, 0, REFERENCE_AGENT)
@@ -54,7 +61,8 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
         logger.info(f"benchmark {bench}: {method} seed {seed} ({campaign})")
         runner(case=case, agent=method, budget=budget, workers=workers, seed=seed,
                storage=storage, campaign=campaign)
-    version = consolidate_bench(storage, bench, campaigns, reference, loaded.name)
+    version = consolidate_bench(storage, bench, campaigns, reference, loaded.name, budget,
+                                case_truth(loaded.source) is not None)
     return {"benchmark": bench, "storage": storage, "artifact": version.ref(),
             "summary_path": str(version.file("summary.md")),
             "plot_path": str(version.file("best_so_far.png"))}

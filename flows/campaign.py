@@ -11,8 +11,9 @@ from typing import Annotated, Literal
 from prefect import flow, get_run_logger
 from pydantic import Field
 
-from hmcore.agents import make_proposer
+from hmcore.agents import AGENTS, make_proposer
 from hmcore.calibration import Job, calibrate
+from hmcore.evaluation import SCORING_VERSION
 from flows.labels import Progress, campaign_run_name, tag_flow_run
 from storage import ArtifactStore, EvaluationJournal
 from tasks.case import prepare_deck, validate_case
@@ -31,9 +32,9 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
     simulated twice); different settings under the same name are refused, never mixed."""
     path = Path(store_root) / campaign / "campaign.json"
     if path.exists():
-        before = json.loads(path.read_text())
+        before = {**SETTINGS_BEFORE_THEY_WERE_STORED, **json.loads(path.read_text())}
         diff = {k: (before.get(k), v) for k, v in settings.items()
-                if _comparable(k, before.get(k)) != _comparable(k, v)}
+                if k in before and _comparable(k, before[k]) != _comparable(k, v)}
         if diff:
             raise ValueError(f"campaign '{campaign}' in {store_root} was started with other "
                              f"settings {diff} (stored, given); choose another --campaign name")
@@ -44,6 +45,12 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
     tmp.replace(path)
 
 
+SETTINGS_BEFORE_THEY_WERE_STORED = {"scoring_version": 1}
+"""What a campaign.json written before a setting was stored means by its absence: scored by
+the first rules. A setting stored neither then nor now (``workers`` in older campaigns) is
+not compared."""
+
+
 def _comparable(key: str, value):
     """The case is the same case when its stored content is: a new version of the same content
     (written by newer hmflow code) resumes the campaign; other content never does."""
@@ -52,7 +59,7 @@ def _comparable(key: str, value):
     return value
 
 
-Agent = Literal["sac", "sac-paper", "random", "sobol", "cmaes", "de", "bo", "lm", "esmda"]
+Agent = Literal[AGENTS]  # a choice in the UI's run form
 
 
 @flow(name="hmflow-campaign", log_prints=True, flow_run_name=campaign_run_name)
@@ -67,7 +74,9 @@ def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
         case: Case TOML file (an absolute path on the worker) or the built-in 'synthetic'.
         agent: Calibration method: sac (hmflow's default), sac-paper (the reference paper's
             SAC), or a baseline (random, sobol, cmaes, de, bo, lm, esmda).
-        budget: Simulator calls in all; a rerun with a larger budget continues the campaign.
+        budget: Simulator calls in all. A rerun with a larger budget continues a random or
+            sobol campaign; methods whose plan depends on the budget (sac's final exploit
+            call, cmaes, de, esmda, sac-paper) are refused at the first call that differs.
         workers: Simulations at once.
         seed: Seed of the method.
         storage: Artifact store directory.
@@ -82,7 +91,8 @@ def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
     case_version = prepare_deck(loaded, case, storage, campaign)
     check_campaign_settings(storage, campaign, {
         "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
-        "agent_settings": agent_settings or {}})
+        "agent_settings": agent_settings or {}, "workers": workers,
+        "scoring_version": SCORING_VERSION})
     journal = EvaluationJournal(ArtifactStore(storage), campaign)
     done = {r["index"]: r for r in journal.rows()}
     if done:

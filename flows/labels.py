@@ -1,19 +1,12 @@
-"""How hmflow's runs read in the Prefect UI: flow-run names from the campaign, tags (case,
-agent, seed), task-run names with the call number, and a progress artifact with the best E."""
+"""How hmflow's flow runs read in the Prefect UI: names from the campaign, tags (case, agent,
+seed) and a progress artifact with the best E (task-run names: :mod:`tasks.naming`)."""
 
 from __future__ import annotations
 
 import math
 from datetime import datetime, timezone
 
-ARTIFACT_KEY_CHARS = "abcdefghijklmnopqrstuvwxyz0123456789-"
-
-
-def artifact_key(name: str, suffix: str) -> str:
-    """A Prefect artifact key (lowercase letters, digits, dashes) from a campaign name."""
-    base = "".join(ch if ch in ARTIFACT_KEY_CHARS else "-" for ch in name.lower())
-    return f"{base}-{suffix}"
-
+from tasks.naming import artifact_key
 
 def _stamp() -> str:
     return datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
@@ -43,14 +36,6 @@ def named_run(key: str, default: str, suffix: str = ""):
         return f"{flow_run.parameters.get(key) or default}{suffix}-{_stamp()}"
 
     return name
-
-
-def simulate_run_name() -> str:
-    """``sim-017`` for call 17 (calls are numbered from 1)."""
-    from prefect.runtime import task_run
-
-    job = task_run.parameters.get("job")
-    return f"sim-{job.index + 1:03d}" if job is not None else "sim"
 
 
 def tag_flow_run(*tags: str) -> None:

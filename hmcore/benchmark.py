@@ -10,7 +10,7 @@ best), the first call at which it reaches 1.5x, 1.2x and 1.1x the floor, the fra
 from the prior-centre E to the floor it has closed after 25, 50, 100 and 200 calls
 (``1 - (best - floor) / (centre - floor)``), failed and penalised calls, and wall time. Per
 method: medians across seeds (a level a seed never reached counts as never, so the median is
-"not reached" when most seeds miss it) and how many seeds reached each level.
+"never" when half or more of the seeds miss it) and how many seeds reached each level.
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from hmcore.results import running_best
 
 LEVELS = (1.5, 1.2, 1.1)
 MARKS = (25, 50, 100, 200)
@@ -46,10 +48,7 @@ def best_so_far(calls: pd.DataFrame) -> pd.DataFrame:
     """``calls`` with ``best``: the running minimum of E over COMPLETE calls, per method and
     seed, in call order (NaN until the first valid call)."""
     calls = calls.sort_values(["method", "seed", "call"]).reset_index(drop=True)
-    valid = calls["E"].where(calls["status"] == "COMPLETE")
-    keys = [calls["method"], calls["seed"]]
-    # cummin leaves NaN at a NaN (an invalid call): carry the best forward over it
-    calls["best"] = valid.groupby(keys).cummin().groupby(keys).ffill()
+    calls["best"] = running_best(calls["E"], calls["status"], [calls["method"], calls["seed"]])
     return calls
 
 
@@ -104,14 +103,17 @@ def summary(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
-def markdown(table: pd.DataFrame, floor: float, centre: float, case: str) -> str:
+def markdown(table: pd.DataFrame, floor: float, centre: float, case: str,
+             truth_known: bool = True) -> str:
     """The summary as a Markdown table, methods ordered by median calls to 1.1x the floor."""
     order = table.sort_values(["calls_to_1.1x", "calls_to_1.2x", "best_E_median"])
     head = ("| method | seeds | calls | to 1.5x | to 1.2x | to 1.1x | gap closed at 25 / 50 / "
             "100 / 200 | best E median [IQR] | failed | penalised | wall min (median) |")
-    lines = [f"Case **{case}**: floor E {floor:.6g} (the truth's own), prior-centre E "
-             f"{centre:.6g}. Calls to a level: median over seeds (seeds that reached it).", "",
-             head, "|" + "---|" * 11]
+    source = "the truth's own" if truth_known else "the deck's own values"
+    lines = [f"Case **{case}**: floor E {floor:.6g} ({source}), prior-centre E {centre:.6g}. "
+             "Calls to a level: the median over all seeds, a seed that never reached it "
+             "counting as never (so 'never' when half or more missed); in brackets, the seeds "
+             "that reached it.", "", head, "|" + "---|" * 11]
     for d in order.to_dict("records"):
         def level(lv: str) -> str:
             v, n = d[f"calls_to_{lv}x"], d[f"reached_{lv}x"]

@@ -73,10 +73,12 @@ def calibrate(proposer: Proposer | Driver, space: ParameterSpace,
             phases[0] = "exploit"
         jobs = [Job(index + k, space.to_values(p.action), tuple(float(x) for x in p.action),
                     p.lane, phases[k]) for k, p in enumerate(proposals)]
+        # a journaled call must be the one asked for, checked before anything new runs
+        replayed = {j.index: check_replay(done[j.index], j, proposer.name)
+                    for j in jobs if j.index in done}
         todo = [j for j in jobs if j.index not in done]
         fresh = {r["index"]: r for r in (evaluate_batch(todo) if todo else [])}
-        batch = [check_replay(done[j.index], j, proposer.name) if j.index in done
-                 else fresh[j.index] for j in jobs]
+        batch = [replayed.get(j.index) or fresh[j.index] for j in jobs]
         told = [Proposal(np.asarray(r["action"], np.float32), p.observation, p.lane, p.key)
                 for r, p in zip(batch, proposals)]
         proposer.tell(told, [feedback_of(r) for r in batch])

@@ -90,7 +90,7 @@ class PhysicsSettings(_Strict):
     kv_kh_max_fraction: float = Field(default=0.10, ge=0, le=1)
     trend_sd: float = Field(default=3.0, gt=0)
     trend_max_fraction: float = Field(default=0.02, ge=0, le=1)
-    pore_volume_change_max: float = Field(default=0.15, ge=0)
+    pore_volume_change_max: float = Field(default=0.15, gt=0)
     pressure_min: float | None = Field(default=None, ge=0)  # deck units; None: 1 atmosphere
     failure_penalty: float = Field(default=10.0, gt=0)
     violation_weight: float = Field(default=5.0, ge=0)

@@ -27,6 +27,13 @@ from hmcore.responses import last_time, read_responses
 from hmcore.simulator import Simulator, make_simulator
 
 
+SCORING_VERSION = 2
+"""The rules a call is scored by (misfit, metrics, physics checks). A campaign is bound to the
+version it started with: records scored by other rules are never mixed in one campaign.
+1: until 2026-11-24 (no cell physics checks, 0 = 0 ratio matches); 2: the paper's metrics and
+the physics checks of :mod:`hmcore.physics`."""
+
+
 class Status(str, Enum):
     COMPLETE = "COMPLETE"
     INVALID = "INVALID"

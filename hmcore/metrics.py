@@ -77,12 +77,12 @@ def ratio_exclusions(pairs: pd.DataFrame) -> pd.Series:
         sub = pairs.loc[rows, ["well", "days", "flowing"]]
         obs_den = pd.Series(0.0, index=sub.index)
         sim_den = pd.Series(0.0, index=sub.index)
-        known = pd.Series(False, index=sub.index)
+        known = pd.Series(True, index=sub.index)
         for part in parts:
             rate = pairs[pairs.quantity == part].drop_duplicates(["well", "days"])
             m = sub.merge(rate[["well", "days", "observed", "simulated"]], on=["well", "days"],
                           how="left").set_index(sub.index)
-            known |= m["observed"].notna()
+            known &= m["observed"].notna()  # all its rates observed; else the flowing flag
             obs_den += m["observed"].fillna(0.0)
             sim_den += m["simulated"].fillna(0.0)
         shut = np.where(known, obs_den <= 0, ~sub["flowing"].astype(bool))

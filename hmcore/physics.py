@@ -175,8 +175,11 @@ def _horizontal(cells, factors) -> tuple[np.ndarray, np.ndarray] | None:
     kx = cells.get("PERMX")
     if kx is None:
         return None
-    ky = cells.get("PERMY") if cells.get("PERMY") is not None else kx
-    f = np.sqrt(factors.get("PERMX", 1.0) * factors.get("PERMY", factors.get("PERMX", 1.0)))
+    own_y = cells.get("PERMY") is not None
+    ky = cells.get("PERMY") if own_y else kx
+    # PERMY's factor is its own; only a deck without PERMY (kx stands for it) follows PERMX's
+    fy = factors.get("PERMY", 1.0) if own_y else factors.get("PERMX", 1.0)
+    f = np.sqrt(factors.get("PERMX", 1.0) * fy)
     kh = np.sqrt(kx * ky)
     return kh, kh * f
 

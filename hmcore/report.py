@@ -124,9 +124,11 @@ def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: d
         reasons = fails["reason"].fillna("").str.split(":").str[0].value_counts().to_dict()
         lines += [f"Failed calls by reason: {reasons}.", ""]
         doc["failure_reasons"] = reasons
-    kinds = (table["violation_kinds"].dropna().str.split(",").explode()
-             if "violation_kinds" in table else pd.Series(dtype=object))
-    kinds = kinds[kinds.astype(bool)].value_counts().to_dict() if len(kinds) else {}
+    kinds: dict[str, int] = {}
+    if "violation_kinds" in table:
+        for cell in table["violation_kinds"].dropna():
+            for kind in set(filter(None, str(cell).split(","))):  # a call counts once per check
+                kinds[kind] = kinds.get(kind, 0) + 1
     if kinds:
         lines += [f"Physics checks broken (calls penalised by each; see hmcore.physics): {kinds}.",
                   ""]

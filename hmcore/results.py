@@ -32,6 +32,16 @@ def results_table(records: list[dict], parameter_names: list[str]) -> pd.DataFra
     for col in df.columns:
         if col not in ("phase", "status", "reason", "run_dir", "agent", "violation_kinds"):
             df[col] = pd.to_numeric(df[col], errors="coerce")
-    ok = df["E"].where(df["status"] == "COMPLETE")
-    df["best_E_so_far"] = ok.cummin()
+    df["best_E_so_far"] = running_best(df["E"], df["status"])
     return df
+
+
+def running_best(E: pd.Series, status: pd.Series, groups: list[pd.Series] | None = None
+                 ) -> pd.Series:
+    """The best (lowest) E of the COMPLETE calls so far, in the series' order (per group when
+    ``groups`` are given); failed and penalised calls never count, and the best is carried
+    over them (NaN only before the first valid call)."""
+    valid = E.where(status == "COMPLETE")
+    if not groups:
+        return valid.cummin().ffill()
+    return valid.groupby(groups).cummin().groupby(groups).ffill()

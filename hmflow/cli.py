@@ -17,6 +17,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from hmcore.agents import AGENTS
 from hmcore.errors import CaseError
 
 # the temporary Prefect server hmflow starts sends no usage telemetry (and prints no error
@@ -358,9 +359,8 @@ def tables(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
 
 @app.command()
 def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
-          methods: str = typer.Option(",".join(("sac", "sac-paper", "random", "sobol", "cmaes",
-                                                "de", "bo", "lm", "esmda")), "--methods",
-                                      help="Comma-separated methods"),
+          methods: str = typer.Option("all", "--methods", help="Comma-separated methods, or "
+                                      "'all': " + ", ".join(AGENTS)),
           seeds: int = typer.Option(5, "--seeds", min=1, help="Seeds 0 .. K-1 for every method"),
           budget: int = typer.Option(100, "--budget", min=1, help="Simulator calls per method "
                                      "and seed (every run counts: Jacobian runs, ensemble "
@@ -373,10 +373,9 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     resumes where it was), then one table, Parquet files and a best-so-far plot."""
     from flows.bench import bench_flow
 
-    from hmcore.agents import AGENTS
-
     c = _load(case)
-    chosen = [m.strip() for m in methods.split(",") if m.strip()]
+    chosen = list(AGENTS) if methods == "all" else [m.strip() for m in methods.split(",")
+                                                    if m.strip()]
     unknown = [m for m in chosen if m not in AGENTS]
     if unknown or not chosen:
         err_console.print(f"[red]x[/] --methods: unknown {unknown or 'none given'}; choose from "

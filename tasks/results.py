@@ -11,7 +11,7 @@ from prefect.artifacts import (create_link_artifact, create_markdown_artifact,
                                create_table_artifact)
 from prefect.cache_policies import NO_CACHE
 
-from flows.labels import artifact_key
+from tasks.naming import artifact_key
 from hmcore.calibration import best_record
 from hmcore.report import build_report, to_jsonable
 from hmcore.results import results_table

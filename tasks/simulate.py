@@ -8,7 +8,7 @@ from pathlib import Path
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from flows.labels import simulate_run_name
+from tasks.naming import simulate_run_name
 from hmcore.calibration import Job
 from hmcore.case import Case
 from hmcore.evaluation import evaluate

@@ -70,10 +70,18 @@ def test_library_methods_improve_on_their_first_calls(method):
     assert median(records[-8:]) < median(records[:8])
 
 
-def test_a_resume_that_asks_for_other_actions_is_refused():
-    other = run("cmaes", seed=1)
+@pytest.mark.parametrize("method", ["cmaes", "sobol", "random"])  # lm: same start
+def test_a_resume_that_asks_for_other_actions_is_refused_before_anything_runs(method):
+    """A journal of 3 calls (the second batch of 2 half journaled) from another seed: refused
+    at its first call, before a single new call is evaluated (nothing is added to it)."""
+    other = run(method, seed=1)
+    log: list[int] = []
     with pytest.raises(RuntimeError, match="diverged at call 0"):
-        run("cmaes", seed=2, done={r["index"]: r for r in other[:4]})
+        run(method, seed=2, done={r["index"]: r for r in other[:3]}, log=log)
+    assert log == []
+    # the same journal with its own seed resumes, evaluating only what is missing
+    resumed = run(method, seed=1, done={r["index"]: r for r in other[:3]}, log=log)
+    assert log == list(range(3, BUDGET)) and len(resumed) == BUDGET
 
 
 def test_budget_problems_are_stated_before_anything_runs():

@@ -17,7 +17,6 @@ never run the simulator; the caller evaluates what they ask and journals every c
 from hmcore.agents.base import Driver, Feedback, Proposal, Proposer
 from hmcore.agents.random_search import RandomProposer
 from hmcore.agents.sac import SACProposer, SACSettings
-from hmcore.agents.sac_paper import PaperSAC, PaperSACSettings
 
 AGENTS = ("sac", "sac-paper", "random", "sobol", "cmaes", "de", "bo", "lm", "esmda")
 
@@ -30,6 +29,8 @@ def make_proposer(name: str, dim: int, seed: int, workers: int = 1, budget: int 
     if name == "sac":
         return SACProposer(dim, seed, SACSettings(**settings))
     if name == "sac-paper":
+        from hmcore.agents.sac_paper import PaperSAC, PaperSACSettings
+
         return PaperSAC(dim, seed, PaperSACSettings(**settings))
     if name == "random":
         return RandomProposer(dim, seed)
@@ -76,5 +77,5 @@ def budget_problem(name: str, budget: int, workers: int) -> str | None:
     return None
 
 
-__all__ = ["AGENTS", "Driver", "Feedback", "PaperSAC", "PaperSACSettings", "Proposal", "Proposer",
-           "RandomProposer", "SACProposer", "SACSettings", "budget_problem", "make_proposer"]
+__all__ = ["AGENTS", "Driver", "Feedback", "Proposal", "Proposer", "RandomProposer",
+           "SACProposer", "SACSettings", "budget_problem", "make_proposer"]

@@ -28,6 +28,10 @@ class BOProposer:
 
     def __init__(self, dim: int, seed: int):
         import optuna
+        import torch
+
+        torch.set_num_threads(1)  # as the SAC learners: the cores are the simulators', and a
+        #                           resumed campaign replays the GP's proposals exactly
 
         optuna.logging.set_verbosity(optuna.logging.WARNING)
         sampler = optuna.samplers.GPSampler(seed=seed, n_startup_trials=STARTUP_TRIALS)

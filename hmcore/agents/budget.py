@@ -59,10 +59,12 @@ class BudgetedCalls:
         start = len(self.records)
         jobs = [Job(start + i, self.space.to_values(a), tuple(float(x) for x in a),
                     (lanes[i] if lanes else i), phase) for i, a in enumerate(fit)]
+        # a journaled call must be the one asked for, checked before anything new runs
+        replayed = {j.index: check_replay(self.done[j.index], j, self.method)
+                    for j in jobs if j.index in self.done}
         todo = [j for j in jobs if j.index not in self.done]
         fresh = {r["index"]: r for r in (self.evaluate_batch(todo) if todo else [])}
-        batch = [check_replay(self.done.get(job.index) or fresh[job.index], job, self.method)
-                 for job in jobs]
+        batch = [replayed.get(j.index) or fresh[j.index] for j in jobs]
         self.records.extend(batch)
         if len(fit) < len(actions):
             raise BudgetExhausted(f"{self.budget} calls spent")
