@@ -4,6 +4,7 @@ consolidate into Parquet, a Markdown table and a plot."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from prefect import flow, get_run_logger
@@ -26,6 +27,19 @@ def bench_names(case_name: str, methods: list[str], seeds: list[int], name: str 
     bench = name or f"bench-{case_name}"
     return bench, f"{bench}-reference", {f"{bench}-{m}-s{s}": (m, s) for s in seeds
                                           for m in methods}
+
+
+def complete(store: ArtifactStore, campaign: str, method: str, seed: int, budget: int,
+             workers: int) -> bool:
+    """A campaign of this benchmark with all its calls journaled, under the same method, seed,
+    workers and scoring rules: nothing to run (its journal is read as it is). Anything else
+    goes through the campaign flow, which resumes it or refuses other settings."""
+    path = store.root / campaign / "campaign.json"
+    if not path.is_file() or len(EvaluationJournal(store, campaign).indices()) < budget:
+        return False
+    stored = json.loads(path.read_text())
+    return (stored.get("agent"), stored.get("seed"), stored.get("workers"),
+            stored.get("scoring_version")) == (method, seed, workers, SCORING_VERSION)
 
 
 @flow(name="hmflow-bench", log_prints=True, flow_run_name=named_run("name", "bench"))
@@ -57,7 +71,11 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
     for f in futures:
         f.result()
     runner = campaign_flow.with_options(task_runner=ThreadPoolTaskRunner(max_workers=workers))
+    store = ArtifactStore(storage)
     for campaign, (method, seed) in campaigns.items():
+        if complete(store, campaign, method, seed, budget, workers):
+            logger.info(f"benchmark {bench}: {method} seed {seed} complete ({campaign})")
+            continue
         logger.info(f"benchmark {bench}: {method} seed {seed} ({campaign})")
         runner(case=case, agent=method, budget=budget, workers=workers, seed=seed,
                storage=storage, campaign=campaign)
