@@ -180,18 +180,24 @@ def deployed(api_settings, tmp_path_factory):
             "campaign_id": campaign_id, "report_id": report_id}
 
 
-@pytest.fixture(scope="module")
-def worker(prefect_server, deployed):
-    """A real `prefect worker start --pool POOL` subprocess (polling every 2 s)."""
-    log = prefect_server["root"] / "worker.log"
-    env = dict(prefect_server["env"], PREFECT_WORKER_QUERY_SECONDS="2")
-    proc = _start([str(PREFECT), "worker", "start", "--pool", POOL, "--name", "hmflow-it-worker",
+@contextlib.contextmanager
+def serve_worker(server: dict, pool: str, name: str):
+    """A real `prefect worker start --pool POOL` subprocess (polling every 2 s), stopped before
+    the server fixture stops the server: a worker without its server keeps retrying."""
+    log = server["root"] / f"{name}.log"
+    env = dict(server["env"], PREFECT_WORKER_QUERY_SECONDS="2")
+    proc = _start([str(PREFECT), "worker", "start", "--pool", pool, "--name", name,
                    "--limit", "1"], env, log)
     try:
         yield {"proc": proc, "log": log}
     finally:
-        _stop(proc)  # before the server fixture stops the server: a worker without its server
-        #              keeps retrying instead of exiting
+        _stop(proc)
+
+
+@pytest.fixture(scope="module")
+def worker(prefect_server, deployed):
+    with serve_worker(prefect_server, POOL, "hmflow-it-worker") as w:
+        yield w
 
 
 # --------------------------------------------------------------------------------------------

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from test_deployments import (PREFECT, _start, _stop, _tail,  # noqa: F401 (fixtures)
+from test_deployments import (PREFECT, _tail, serve_worker,  # noqa: F401 (fixtures)
                               api_settings, prefect_server)
 
 POOL = "hmflow-sched-test"
@@ -68,14 +68,8 @@ def scheduled_deployment(api_settings, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def worker(prefect_server, scheduled_deployment):
-    log = prefect_server["root"] / "sched-worker.log"
-    env = dict(prefect_server["env"], PREFECT_WORKER_QUERY_SECONDS="2")
-    proc = _start([str(PREFECT), "worker", "start", "--pool", POOL, "--name", "sched-worker",
-                   "--limit", "1"], env, log)
-    try:
-        yield {"proc": proc, "log": log}
-    finally:
-        _stop(proc)  # before the server fixture stops the server
+    with serve_worker(prefect_server, POOL, "sched-worker") as w:
+        yield w
 
 
 def _runs_of(deployment_id) -> list:
