@@ -72,7 +72,8 @@ def ensure_work_pool(name: str = DEFAULT_POOL):
 def campaign_parameters(case: str = "synthetic", agent: str = "sac", budget: int = 200,
                         workers: int = 2, seed: int = 0, storage: str | Path = DEFAULT_STORAGE,
                         campaign: str | None = None,
-                        agent_settings: dict | None = None) -> dict[str, Any]:
+                        agent_settings: dict | None = None, task_runner: str = "threads",
+                        dask_address: str | None = None) -> dict[str, Any]:
     """Parameters of ``campaign_flow`` for a deployment: case file and storage made absolute
     (the worker runs the flow in another working directory) and the campaign name fixed, so
     that every scheduled run resumes the same campaign and the report deployment can name it."""
@@ -87,6 +88,10 @@ def campaign_parameters(case: str = "synthetic", agent: str = "sac", budget: int
         "campaign": campaign or default_campaign_name(case_name(case), agent, int(seed))}
     if agent_settings:
         params["agent_settings"] = dict(agent_settings)
+    if task_runner != "threads" or dask_address:  # where the simulator calls run (docs/cluster.md)
+        params["task_runner"] = task_runner
+        if dask_address:
+            params["dask_address"] = dask_address
     return params
 
 

@@ -8,16 +8,20 @@ import json
 from pathlib import Path
 
 from prefect import flow, get_run_logger
-from prefect.task_runners import ThreadPoolTaskRunner
 
 from flows.campaign import DEFAULT_STORAGE, campaign_flow, check_campaign_settings
 from flows.labels import named_run
+from flows.runners import Runner
+from flows.runners import task_runner as make_runner
 from storage import ArtifactStore, EvaluationJournal
 from hmcore.benchmark import case_truth
+from hmcore.agents import method_version
 from hmcore.evaluation import SCORING_VERSION
-from tasks.bench import REFERENCE_AGENT, consolidate_bench, reference_jobs
-from tasks.case import prepare_deck, validate_case
-from tasks.simulate import simulate
+from tasks.bench import consolidate_bench
+from tasks.reference import reference_settings, run_references
+from flows.refuse import USER_ERRORS, input_problems, refused
+from hmcore.case import load_case
+from tasks.case import prepare_deck
 
 
 def bench_names(case_name: str, methods: list[str], seeds: list[int], name: str | None = None
@@ -25,8 +29,12 @@ def bench_names(case_name: str, methods: list[str], seeds: list[int], name: str 
     """(benchmark name, reference campaign, {campaign: (method, seed)}), seed by seed: a
     benchmark stopped part-way has every method on its first seeds."""
     bench = name or f"bench-{case_name}"
-    return bench, f"{bench}-reference", {f"{bench}-{m}-s{s}": (m, s) for s in seeds
-                                          for m in methods}
+
+    def campaign(m: str, s: int) -> str:  # a method's later version is another campaign
+        v = method_version(m)
+        return f"{bench}-{m}-s{s}" if v == 1 else f"{bench}-{m}-v{v}-s{s}"
+
+    return bench, f"{bench}-reference", {campaign(m, s): (m, s) for s in seeds for m in methods}
 
 
 def complete(store: ArtifactStore, campaign: str, method: str, seed: int, budget: int,
@@ -39,48 +47,51 @@ def complete(store: ArtifactStore, campaign: str, method: str, seed: int, budget
         return False
     stored = json.loads(path.read_text())
     return (stored.get("agent"), stored.get("seed"), stored.get("workers"),
-            stored.get("scoring_version")) == (method, seed, workers, SCORING_VERSION)
+            stored.get("scoring_version"), stored.get("method_version", 1)) == (
+        method, seed, workers, SCORING_VERSION, method_version(method))
 
 
 @flow(name="hmflow-bench", log_prints=True, flow_run_name=named_run("name", "bench"))
 def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
                seeds: list[int] | None = None, budget: int = 100, workers: int = 2,
-               storage: str = DEFAULT_STORAGE, name: str | None = None) -> dict:
-    """Every method x seed at the same ``budget`` of simulator calls on ``case``."""
+               storage: str = DEFAULT_STORAGE, name: str | None = None,
+               task_runner: Runner = "threads", dask_address: str | None = None) -> dict:
+    """Every method x seed at the same ``budget`` of simulator calls on ``case`` (the
+    simulator calls on ``task_runner``, as in the campaign flow)."""
     from hmcore.agents import AGENTS
 
     logger = get_run_logger()
-    storage = str(Path(storage).resolve())
+    storage = str(Path(storage).expanduser().resolve())
     methods = list(methods or AGENTS)
     seeds = list(seeds if seeds is not None else range(5))
-    loaded = validate_case(case)
+    try:  # bad input from the UI or the API: one clear line, no traceback, no simulation
+        problems = list(dict.fromkeys(p for m in methods
+                                      for p in input_problems(m, budget, workers, task_runner)))
+        if problems:
+            raise ValueError("; ".join(problems))
+        loaded = load_case(case)
+    except USER_ERRORS as exc:
+        return refused(exc)
     bench, reference, campaigns = bench_names(loaded.name, methods, seeds, name)
     case_version = prepare_deck(loaded, case, storage, reference)
-    check_campaign_settings(storage, reference, {"case_artifact": case_version.ref(),
-                                                 "agent": REFERENCE_AGENT, "seed": 0,
-                                                 "agent_settings": {},
-                                                 "scoring_version": SCORING_VERSION})
+    check_campaign_settings(storage, reference, reference_settings(case_version))
     # one benchmark, one budget: methods compared at another budget or worker count are
     # another benchmark (another --name)
     check_campaign_settings(storage, bench, {"case_artifact": case_version.ref(),
                                              "budget": budget, "workers": workers})
-    journal = EvaluationJournal(ArtifactStore(storage), reference)
-    done = {r["index"] for r in journal.rows()}
-    futures = [simulate.submit(loaded, job, storage, reference, 0, REFERENCE_AGENT)
-               for job in reference_jobs(loaded) if job.index not in done]
-    for f in futures:
-        f.result()
-    runner = campaign_flow.with_options(task_runner=ThreadPoolTaskRunner(max_workers=workers))
+    with make_runner(task_runner, workers, dask_address) as started:
+        run_references(loaded, storage, reference, started)
     store = ArtifactStore(storage)
     for campaign, (method, seed) in campaigns.items():
         if complete(store, campaign, method, seed, budget, workers):
             logger.info(f"benchmark {bench}: {method} seed {seed} complete ({campaign})")
             continue
         logger.info(f"benchmark {bench}: {method} seed {seed} ({campaign})")
-        runner(case=case, agent=method, budget=budget, workers=workers, seed=seed,
-               storage=storage, campaign=campaign)
+        campaign_flow(case=case, agent=method, budget=budget, workers=workers, seed=seed,
+               storage=storage, campaign=campaign, reference=reference,
+               task_runner=task_runner, dask_address=dask_address)
     version = consolidate_bench(storage, bench, campaigns, reference, loaded.name, budget,
-                                case_truth(loaded.source) is not None)
+                                case_truth(loaded.source) is not None, workers)
     return {"benchmark": bench, "storage": storage, "artifact": version.ref(),
             "summary_path": str(version.file("summary.md")),
             "plot_path": str(version.file("best_so_far.png"))}

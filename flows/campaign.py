@@ -1,5 +1,6 @@
-"""The campaign flow: prepare case -> SAC in the loop (simulate tasks on a task runner) ->
-consolidate into Parquet -> archive the best valid case -> report."""
+"""The campaign flow: prepare case -> reference runs (truth or deck values, prior centre) ->
+the method in the loop (simulate tasks on a task runner) -> consolidate into Parquet ->
+archive the best valid case -> curves and forecast -> report (Markdown, JSON, HTML)."""
 
 from __future__ import annotations
 
@@ -11,20 +12,29 @@ from typing import Annotated, Literal
 from prefect import flow, get_run_logger
 from pydantic import Field
 
-from hmcore.agents import AGENTS, make_proposer
+from hmcore.agents import AGENTS, make_proposer, method_version
 from hmcore.calibration import Job, calibrate
 from hmcore.evaluation import SCORING_VERSION
 from flows.labels import Progress, campaign_run_name, tag_flow_run
 from storage import ArtifactStore, EvaluationJournal
-from tasks.case import prepare_deck, validate_case
+from flows.refuse import USER_ERRORS, input_problems, refused
+from hmcore.case import load_case
+from tasks.case import prepare_deck
+from tasks.curves import collect_curves
+from tasks.reference import reference_name, reference_settings, run_references
 from tasks.results import archive_best, consolidate, report
-from tasks.simulate import observation_set, simulate
+from tasks.simulate import observation_set, simulate, simulate_parameters
+from flows.runners import Runner
+from flows.runners import task_runner as make_runner
 
 DEFAULT_STORAGE = "./hmflow-storage"
 
 
 def default_campaign_name(case_name: str, agent: str, seed: int) -> str:
-    return f"{case_name}-{agent}-seed{seed}"
+    """CASE-AGENT-seedS; a method's later version is another campaign (CASE-sac-v2-seedS)."""
+    version = method_version(agent) if agent in AGENTS else 1
+    tag = f"{agent}-v{version}" if version > 1 else agent
+    return f"{case_name}-{tag}-seed{seed}"
 
 
 def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> None:
@@ -45,7 +55,7 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
     tmp.replace(path)
 
 
-SETTINGS_BEFORE_THEY_WERE_STORED = {"scoring_version": 1}
+SETTINGS_BEFORE_THEY_WERE_STORED = {"scoring_version": 1, "method_version": 1}
 """What a campaign.json written before a setting was stored means by its absence: scored by
 the first rules. A setting stored neither then nor now (``workers`` in older campaigns) is
 not compared."""
@@ -67,7 +77,8 @@ def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
                   budget: Annotated[int, Field(ge=1)] = 200,
                   workers: Annotated[int, Field(ge=1)] = 2, seed: Annotated[int, Field(ge=0)] = 0,
                   storage: str = DEFAULT_STORAGE, campaign: str | None = None,
-                  agent_settings: dict | None = None) -> dict:
+                  agent_settings: dict | None = None, reference: str | None = None,
+                  task_runner: Runner = "threads", dask_address: str | None = None) -> dict:
     """Calibrate ``case`` with ``budget`` simulator calls, ``workers`` at a time.
 
     Args:
@@ -82,17 +93,36 @@ def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
         storage: Artifact store directory.
         campaign: Campaign name; the same name resumes (default CASE-AGENT-seedS).
         agent_settings: Settings of sac or sac-paper (advanced; see hmcore.agents).
+        reference: Campaign holding the two reference runs (the truth's or the deck's own
+            values, and the prior centre), outside the budget; default CAMPAIGN-reference
+            (a benchmark shares its own among its campaigns).
+        task_runner: Where the simulator calls run: threads (subprocesses of this flow's
+            process) or dask (a Dask cluster, see dask_address).
+        dask_address: Scheduler of an existing Dask cluster (tcp://host:8786); default the
+            DASK_ADDRESS environment variable, else a local cluster of `workers` processes.
     """
     logger = get_run_logger()
-    storage = str(Path(storage).resolve())
-    loaded = validate_case(case)
+    try:  # bad input from the UI or the API: one clear line, no traceback, no simulation
+        problems = input_problems(agent, budget, workers, task_runner)
+        if problems:
+            raise ValueError("; ".join(problems))
+        storage = str(Path(storage).expanduser().resolve())
+        loaded = load_case(case)
+    except USER_ERRORS as exc:
+        return refused(exc)
     campaign = campaign or default_campaign_name(loaded.name, agent, seed)
+    reference = reference or reference_name(campaign)
     tag_flow_run("hmflow", f"case:{loaded.name}", f"agent:{agent}", f"seed:{seed}")
     case_version = prepare_deck(loaded, case, storage, campaign)
-    check_campaign_settings(storage, campaign, {
-        "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
-        "agent_settings": agent_settings or {}, "workers": workers,
-        "scoring_version": SCORING_VERSION})
+    try:  # a name bound to other settings (another case, method or version): one clear line
+        check_campaign_settings(storage, campaign, {
+            "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
+            "agent_settings": agent_settings or {}, "workers": workers,
+            "scoring_version": SCORING_VERSION, "method_version": method_version(agent),
+            "reference": reference})
+        check_campaign_settings(storage, reference, reference_settings(case_version))
+    except ValueError as exc:
+        return refused(exc)
     journal = EvaluationJournal(ArtifactStore(storage), campaign)
     done = {r["index"]: r for r in journal.rows()}
     if done:
@@ -104,19 +134,27 @@ def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
     progress = Progress(campaign, budget)
     progress.update([r for i, r in done.items() if i < budget])
 
-    def evaluate_batch(jobs: list[Job]) -> list[dict]:
-        futures = [simulate.submit(loaded, job, storage, campaign, seed, agent, observations)
-                   for job in jobs]
-        records = [f.result() for f in futures]
-        progress.update(records)
-        return records
+    with make_runner(task_runner, workers, dask_address) as runner:
+        run_references(loaded, storage, reference, runner)
 
-    calibrate(proposer, loaded.space, evaluate_batch, budget, workers, done)
+        def evaluate_batch(jobs: list[Job]) -> list[dict]:
+            futures = [runner.submit(simulate, simulate_parameters(
+                loaded, job, storage, campaign, seed, agent, observations)) for job in jobs]
+            records = [f.result() for f in futures]
+            progress.update(records)
+            return records
+
+        calibrate(proposer, loaded.space, evaluate_batch, budget, workers, done)
     results = consolidate(storage, campaign, loaded.space.names)
     best = archive_best(storage, campaign, results)
+    collect_curves(storage, campaign, reference)
     rep = report(storage, campaign)
     summary = rep.read_json("report.json")
-    logger.info(f"campaign {campaign}: best {summary.get('best')}")
+    best_doc = summary.get("best")
+    logger.info(f"campaign {campaign}: " + (
+        f"best E {best_doc['E']:.6g} at call {best_doc['index'] + 1}" if best_doc
+        else "no valid call"))
     return {"campaign": campaign, "storage": storage, "results": results.ref(),
             "best": best.ref() if best else None, "report": rep.ref(),
-            "report_path": str(rep.file("report.md"))}
+            "report_path": str(rep.file("report.md")),
+            "report_html": str(rep.file("report.html"))}

@@ -20,7 +20,11 @@ from prefect import flow, get_run_logger
 
 from hmcore.diagnosis import Diagnosis, DiagnosisSettings
 from storage import sha256_json
-from tasks.case import fingerprint_differences, prepare_deck, validate_case
+from flows.runners import Runner
+from flows.runners import task_runner as make_runner
+from flows.refuse import USER_ERRORS, input_problems, refused
+from hmcore.case import load_case
+from tasks.case import fingerprint_differences, prepare_deck
 from tasks.diagnose import simulate_values, store_step
 from tasks.results import report as campaign_report
 
@@ -86,21 +90,27 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
                   budget: int | None = None, campaign: str | None = None, workers: int = 2,
                   calibrated: dict[str, float] | None = None,
                   initial: dict[str, float] | None = None,
-                  settings: dict[str, Any] | None = None) -> dict:
+                  settings: dict[str, Any] | None = None, task_runner: Runner = "threads",
+                  dask_address: str | None = None) -> dict:
     """Diagnose ``case``: what does the calibrated model get wrong, and what fixes it?
 
     ``budget`` caps the simulator calls (None: as many as the steps need, about
     40 + the number of candidate extensions); ``calibrated`` skips the calibration of the
     case's own parameters (e.g. a campaign's best), ``initial`` starts it elsewhere than at
     the base model; ``settings`` overrides :class:`DiagnosisSettings` fields (thresholds,
-    kinds, confirm_top). Returns the campaign, the ranked causes, the selected extension,
-    the gain and ``diagnosis_path`` (the stored ``diagnosis.json``).
+    kinds, confirm_top); ``task_runner`` and ``dask_address`` say where the simulations run
+    (see :mod:`flows.runners`; ``workers`` at once). Returns the campaign, the ranked
+    causes, the selected extension, the gain and ``diagnosis_path`` (the stored ``diagnosis.json``).
     """
-    import pandas as pd
-
     logger = get_run_logger()
-    storage = str(Path(storage).resolve())
-    loaded = validate_case(case)
+    storage = str(Path(storage).expanduser().resolve())
+    try:  # bad input from the UI or the API: one clear line, no traceback, no simulation
+        problems = input_problems(task_runner=task_runner)
+        if problems:
+            raise ValueError("; ".join(problems))
+        loaded = load_case(case)
+    except USER_ERRORS as exc:
+        return refused(exc)
     campaign = campaign or default_campaign_name(loaded.name)
     case_version = prepare_deck(loaded, case, storage, campaign)
     run_root = Path(storage) / campaign / "diagnosis-runs"
@@ -110,7 +120,8 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
     def evaluate_batch(c, values_list, step):
         with lock:
             dirs = [str(run_root / f"{step}-{next(counter):05d}") for _ in values_list]
-        futures = [simulate_values.submit(c, v, d) for v, d in zip(values_list, dirs)]
+        futures = [runner.submit(simulate_values, {"case": c, "values": v, "run_dir": d})
+                   for v, d in zip(values_list, dirs)]
         return [f.result() for f in futures]
 
     opts = dict(settings or {})
@@ -129,6 +140,29 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
         versions[step] = v
         return v
 
+    with make_runner(task_runner, workers, dask_address) as runner:
+        _steps(d, store, calibrated, initial)
+    doc = d.decide()
+    with tempfile.TemporaryDirectory(prefix="hmflow-diagnosis-") as tmp:
+        d.report(Path(tmp))
+        report_files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())}
+    rep = store("diagnosis-report", report_files)
+    path = rep.file("diagnosis.json")
+    whole = campaign_report(storage, campaign)  # the campaign's report, with the diagnosis
+    sel = doc["selected"]
+    logger.info(f"diagnosis of {loaded.name}: {doc['verdict']}")
+    return {"campaign": campaign, "storage": storage, "causes": doc["causes"],
+            "selected": sel, "verdict": doc["verdict"], "gain": doc["gain"],
+            "diagnosis_path": str(path), "report_path": str(rep.file("report.md")),
+            "campaign_report_path": str(whole.file("report.md")),
+            "artifacts": {k: v.ref() for k, v in versions.items()},
+            "simulations": d.n_runs}
+
+
+def _steps(d: Diagnosis, store, calibrated, initial) -> None:
+    """The simulating steps, each stored as it ends."""
+    import pandas as pd
+
     d.calibrate(calibrated, initial)
     store("diagnosis-calibration", {"calibration.json": d.calibration,
                                     "responses.parquet": d.base.responses.reset_index(drop=True)})
@@ -146,21 +180,6 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
         if run.responses is not None:
             files[f"responses_{_safe(cid)}.parquet"] = run.responses.reset_index(drop=True)
     store("diagnosis-recalibration", files)
-    doc = d.decide()
-    with tempfile.TemporaryDirectory(prefix="hmflow-diagnosis-") as tmp:
-        d.report(Path(tmp))
-        report_files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())}
-    rep = store("diagnosis-report", report_files)
-    path = rep.file("diagnosis.json")
-    whole = campaign_report(storage, campaign)  # the campaign's report, with the diagnosis
-    sel = doc["selected"]
-    logger.info(f"diagnosis of {loaded.name}: {doc['verdict']}")
-    return {"campaign": campaign, "storage": storage, "causes": doc["causes"],
-            "selected": sel, "verdict": doc["verdict"], "gain": doc["gain"],
-            "diagnosis_path": str(path), "report_path": str(rep.file("report.md")),
-            "campaign_report_path": str(whole.file("report.md")),
-            "artifacts": {k: v.ref() for k, v in versions.items()},
-            "simulations": d.n_runs}
 
 
 # ============================================================================ CLI
@@ -206,10 +225,7 @@ def diagnose_command(case: str = "synthetic", storage: Path = Path(DEFAULT_STORA
                      calibrated: Optional[dict[str, float]] = None, console=None) -> dict:
     """``hmflow diagnose``: run the flow with ``workers`` simulations at a time and print the
     ranked causes, the gain and the path of diagnosis.json. Returns the flow's result."""
-    from prefect.task_runners import ThreadPoolTaskRunner
-
-    flow_fn = diagnose_flow.with_options(task_runner=ThreadPoolTaskRunner(max_workers=workers))
-    result = flow_fn(case=str(case), storage=str(Path(storage).resolve()), budget=budget,
+    result = diagnose_flow(case=str(case), storage=str(Path(storage).resolve()), budget=budget,
                      campaign=campaign, workers=workers, calibrated=calibrated)
     print_diagnosis(result, console)
     return result

@@ -14,4 +14,5 @@ from tasks.results import report
 def report_flow(storage: str, campaign: str) -> dict:
     version = report(str(Path(storage).resolve()), campaign)
     return {"report": version.ref(), "report_path": str(version.file("report.md")),
+            "report_html": str(version.file("report.html")),
             "reused": version.reused}

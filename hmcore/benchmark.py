@@ -52,9 +52,35 @@ def best_so_far(calls: pd.DataFrame) -> pd.DataFrame:
     return calls
 
 
-def per_run(calls: pd.DataFrame, floor: float, centre: float) -> pd.DataFrame:
+PAUSE_S = 300.0  # an idle gap longer than this between calls is a stopped-and-resumed campaign
+
+
+def active_wall_s(starts, finishes, pause_s: float = PAUSE_S) -> float:
+    """Wall time a campaign was running, in seconds: from the first call's start to the last
+    call's end, less every idle gap longer than ``pause_s`` (the campaign was stopped and
+    resumed later; the learner never takes that long between two calls). Shorter gaps (the
+    learner, Prefect's task start) count: they are the orchestration overhead."""
+    s = np.asarray(starts, float)
+    f = np.asarray(finishes, float)
+    ok = np.isfinite(s) & np.isfinite(f)
+    if not ok.any():
+        return float("nan")
+    order = np.argsort(s[ok], kind="stable")
+    s, f = s[ok][order], f[ok][order]
+    total, span_start, span_end = 0.0, s[0], f[0]
+    for a, b in zip(s[1:], f[1:]):
+        if a - span_end > pause_s:
+            total += span_end - span_start
+            span_start = a
+        span_end = max(span_end, b)
+    return float(total + span_end - span_start)
+
+
+def per_run(calls: pd.DataFrame, floor: float, centre: float, workers: int = 1) -> pd.DataFrame:
     """One row per (method, seed): calls to each level, gap closed at each mark, best E,
-    failed and penalised calls, calls made, wall and simulator time."""
+    failed and penalised calls, calls made, wall time (running time: see
+    :func:`active_wall_s`), simulator time summed over calls and per worker, and the
+    orchestration overhead: wall time over simulator time per worker, less 1."""
     calls = best_so_far(calls)
     rows = []
     for (method, seed), g in calls.groupby(["method", "seed"], sort=False):
@@ -73,10 +99,13 @@ def per_run(calls: pd.DataFrame, floor: float, centre: float) -> pd.DataFrame:
                                              if np.isfinite(b) and centre > floor else float("nan"))
             else:
                 row[f"gap_closed_{mark}"] = float("nan")
-        start = (g["finished_at"] - g["wall_time_s"]).min() if "finished_at" in g else np.nan
-        row["wall_min"] = float((g["finished_at"].max() - start) / 60.0) \
-            if "finished_at" in g else float("nan")
+        row["wall_min"] = (active_wall_s(g["finished_at"] - g["wall_time_s"], g["finished_at"])
+                           / 60.0 if "finished_at" in g else float("nan"))
         row["sim_min"] = float(g["sim_time_s"].sum() / 60.0)
+        # the simulator time per worker the wall time is held against (issue: overhead)
+        row["sim_min_per_worker"] = row["sim_min"] / max(int(workers), 1)
+        row["overhead"] = row["wall_min"] / row["sim_min_per_worker"] - 1.0 \
+            if row["sim_min_per_worker"] > 0 else float("nan")
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -99,6 +128,7 @@ def summary(runs: pd.DataFrame) -> pd.DataFrame:
         row["failed"] = int(g["failed"].sum())
         row["penalised"] = int(g["penalised"].sum())
         row["wall_min_median"] = float(g["wall_min"].median())
+        row["overhead_median"] = float(g["overhead"].median())
         out.append(row)
     return pd.DataFrame(out)
 
@@ -108,12 +138,17 @@ def markdown(table: pd.DataFrame, floor: float, centre: float, case: str,
     """The summary as a Markdown table, methods ordered by median calls to 1.1x the floor."""
     order = table.sort_values(["calls_to_1.1x", "calls_to_1.2x", "best_E_median"])
     head = ("| method | seeds | calls | to 1.5x | to 1.2x | to 1.1x | gap closed at 25 / 50 / "
-            "100 / 200 | best E median [IQR] | failed | penalised | wall min (median) |")
+            "100 / 200 | best E median [IQR] | failed | penalised | wall min (median) | "
+            "overhead |")
     source = "the truth's own" if truth_known else "the deck's own values"
     lines = [f"Case **{case}**: floor E {floor:.6g} ({source}), prior-centre E {centre:.6g}. "
              "Calls to a level: the median over all seeds, a seed that never reached it "
              "counting as never (so 'never' when half or more missed); in brackets, the seeds "
-             "that reached it.", "", head, "|" + "---|" * 11]
+             "that reached it. Wall: running time (pauses over 5 min left out); overhead: wall time "
+             "over simulator time per worker, less 1 (median): everything but the simulator, "
+             "idle worker slots included (a method that cannot fill W workers at every step, "
+             "such as lm's serial steps or a CMA-ES generation's tail, shows it here).", "",
+             head, "|" + "---|" * 12]
     for d in order.to_dict("records"):
         def level(lv: str) -> str:
             v, n = d[f"calls_to_{lv}x"], d[f"reached_{lv}x"]
@@ -124,7 +159,9 @@ def markdown(table: pd.DataFrame, floor: float, centre: float, case: str,
                           f"{d[f'gap_closed_{m}']:.2f}" for m in MARKS)
         lines.append(f"| {d['method']} | {d['seeds']} | {d['calls']} | {level('1.5')} | "
                      f"{level('1.2')} | {level('1.1')} | {gaps} | {_best(d)} | {d['failed']} | "
-                     f"{d['penalised']} | {d['wall_min_median']:.1f} |")
+                     f"{d['penalised']} | {d['wall_min_median']:.1f} | "
+                     + (f"{d['overhead_median']:+.0%} |" if math.isfinite(d['overhead_median'])
+                        else "n/a |"))
     return "\n".join(lines) + "\n"
 
 

@@ -14,7 +14,9 @@ and the run directory; nothing here retries.
 
 from __future__ import annotations
 
+import os
 import shlex
+import signal
 import subprocess
 import sys
 import time
@@ -68,6 +70,49 @@ def _failure_log(run_dir: Path, stderr_path: Path, stdout_path: Path) -> str:
     return _tail("\n".join(p for p in parts if p))
 
 
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    """Linux: SIGKILL this process when the thread that started it dies (the campaign)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def run_in_own_group(cmd: list[str], stdout, stderr, timeout_s: float, cwd: Path
+                     ) -> subprocess.CompletedProcess:
+    """Run ``cmd`` as the leader of its own process group, killed with the process that
+    started it; on timeout the whole group (the simulator and anything it started: an MPI
+    launcher's ranks, a wrapper script's child) is killed, then TimeoutExpired is raised."""
+    proc = subprocess.Popen(cmd, stdout=stdout, stderr=stderr, cwd=cwd, start_new_session=True,
+                            preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        _kill_group(proc)
+        raise
+    except BaseException:  # interrupted (Ctrl-C, SIGTERM): leave nothing behind
+        _kill_group(proc)
+        raise
+    finally:
+        _kill_group(proc, after_exit=True)
+    return subprocess.CompletedProcess(cmd, proc.returncode)
+
+
+def _kill_group(proc: subprocess.Popen, after_exit: bool = False) -> None:
+    """SIGKILL the process group ``proc`` leads; ``after_exit``: only once the leader has
+    exited (what it left behind), never a running simulator."""
+    if after_exit and proc.returncode is None:
+        return
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+    if proc.returncode is None:
+        proc.wait()
+
+
 def _run_process(cmd: list[str], deck: Path, run_dir: Path, timeout_s: float, backend: str,
                  exit_reasons: dict[int, str] | None = None, cwd: Path | None = None
                  ) -> SimulationResult:
@@ -82,8 +127,8 @@ def _run_process(cmd: list[str], deck: Path, run_dir: Path, timeout_s: float, ba
     start = time.perf_counter()
     try:
         with open(log_path, "wb") as log, open(out_path, "wb") as out:
-            proc = subprocess.run(cmd, stdout=out, stderr=log, timeout=timeout_s, check=False,
-                                  cwd=cwd or run_dir)
+            proc = run_in_own_group(cmd, stdout=out, stderr=log, timeout_s=timeout_s,
+                                    cwd=cwd or run_dir)
     except subprocess.TimeoutExpired:
         raise SimulationError("timeout", f"no result after {timeout_s:g} s (raise timeout_s "
                               "if the model is just slow)", run_dir,

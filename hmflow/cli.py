@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import sys
 from pathlib import Path
 from typing import Optional
@@ -19,10 +18,13 @@ from rich.table import Table
 
 from hmcore.agents import AGENTS
 from hmcore.errors import CaseError
+from hmflow.console import (Watch, bench_poll, campaign_poll, diagnosis_poll, prefect_environment,
+                            status_text, summary_table)
 
-# the temporary Prefect server hmflow starts sends no usage telemetry (and prints no error
-# about it on a machine without internet); a user's own setting wins
-os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+# before Prefect is imported (every command imports it lazily): no usage telemetry (no ERROR
+# about it on a machine without internet), Prefect's own log lines in the terminal from WARNING
+# up (``--verbose``: all); a user's own settings win - see hmflow.console.prefect_environment
+prefect_environment()
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Batch history matching of reservoir models with OPM Flow.")
@@ -30,6 +32,29 @@ console = Console()
 err_console = Console(stderr=True)
 
 CASE_HELP = "Case TOML file, or the built-in name 'synthetic' (generated on first use)."
+VERBOSE_HELP = ("Also show Prefect's own log lines (INFO: temporary server, flow and task runs); "
+                "without it only its warnings and errors")
+
+RUNNER_HELP = ("Where the simulator calls run: threads (subprocesses of this process) or dask "
+               "(a Dask cluster: --dask-address, DASK_ADDRESS, else a local one of --workers "
+               "processes); see docs/cluster.md")
+DASK_HELP = "Dask scheduler address, e.g. tcp://head-node:8786 (default: DASK_ADDRESS)"
+
+
+
+@app.callback()
+def _signals() -> None:
+    """SIGTERM (``kill PID``, a batch system's time limit) stops hmflow as Ctrl-C does: the
+    flow run ends as cancelled, the temporary Prefect server is stopped, and the journal keeps
+    every finished call (the same command resumes). Without this, SIGTERM ended the process
+    at once and left the temporary server running."""
+    import signal
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        signal.signal(signal.SIGTERM, interrupt)
 
 
 def _load(case: str):
@@ -150,32 +175,26 @@ def evaluate(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         raise typer.Exit(1)
 
 
-def _progress_watcher(storage: Path, campaign_hint: str | None, budget: int, stop):
-    """Poll the campaign journal and drive a progress bar (calls / budget, best E, ETA)."""
-    import time
+def _columns(kind: str) -> list:
+    """The progress bar's columns: ``run`` (calls of the budget, best E), ``bench`` (calls of
+    methods x seeds x budget, the method and seed running), ``diagnose`` (simulations of the
+    budget) and ``diagnose-open`` (no budget: a spinner with the count)."""
+    from rich.progress import (BarColumn, SpinnerColumn, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
 
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    from storage import ArtifactStore, EvaluationJournal
-
-    store = ArtifactStore(storage)
-    with Progress(TextColumn("[bold]calls"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TextColumn("best E {task.fields[best]}"), TimeElapsedColumn(), TextColumn("ETA"),
-                  TimeRemainingColumn(), console=console, transient=False) as bar:
-        task = bar.add_task("calls", total=budget, best="-")
-        while True:  # one last poll after ``stop``: the bar ends on the journal's final count
-            finished = stop.is_set()
-            names = [campaign_hint] if campaign_hint else store.campaigns()
-            rows = []
-            for name in names:
-                if name and (storage / name / "evaluations").is_dir():
-                    rows = EvaluationJournal(store, name).rows()
-            ok = [r["E"] for r in rows if r.get("status") == "COMPLETE" and r.get("E") is not None]
-            bar.update(task, completed=min(len(rows), budget),
-                       best=f"{min(ok):.5g}" if ok else "-")
-            if finished:
-                break
-            stop.wait(1.0)
+    count = TextColumn("{task.completed}/{task.total}")
+    if kind == "run":
+        return [TextColumn("[bold]calls"), BarColumn(), count,
+                TextColumn("best E {task.fields[best]}"), TimeElapsedColumn(), TextColumn("ETA"),
+                TimeRemainingColumn()]
+    if kind == "bench":
+        return [TextColumn("[bold]calls"), BarColumn(), count, TimeElapsedColumn(),
+                TextColumn("ETA"), TimeRemainingColumn(), TextColumn("{task.fields[current]}")]
+    if kind == "diagnose":  # the steps may stop short of the budget
+        return [TextColumn("[bold]simulations (budget {task.total})"), BarColumn(), count,
+                TimeElapsedColumn(), TextColumn("step {task.fields[step]}")]
+    return [SpinnerColumn(), TextColumn("[bold]simulations {task.completed}"),
+            TimeElapsedColumn(), TextColumn("step {task.fields[step]}")]
 
 
 @app.command()
@@ -189,35 +208,35 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         storage: Path = typer.Option(Path("./hmflow-storage"), "--storage", help="Artifact store"),
         campaign: Optional[str] = typer.Option(None, "--campaign", help="Campaign name "
                                                "(default CASE-AGENT-seedS; the same name resumes)"),
-        task_runner: str = typer.Option("threads", "--task-runner", help="threads or dask (a local "
-                                        "Dask cluster, or DASK_ADDRESS)")) -> None:
+        task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
+        dask_address: Optional[str] = typer.Option(None, "--dask-address", help=DASK_HELP),
+        verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Run a calibration campaign as a Prefect flow and print the best case and the tables."""
-    import threading
-
+    prefect_environment(verbose)
     from flows.campaign import campaign_flow, default_campaign_name
+    from storage import ArtifactStore, EvaluationJournal
 
     c = _load(case)  # clear errors before any simulator time or Prefect start-up
     _check_agent(agent, budget, workers)
+    _check_runner(task_runner)
     name = campaign or default_campaign_name(c.name, agent, seed)
     storage = storage.resolve()
     console.print(f"campaign [bold]{name}[/]: case {c.name}, agent {agent}, budget {budget}, "
                   f"workers {workers}, seed {seed}, storage {storage}")
-    flow_fn = campaign_flow.with_options(task_runner=_task_runner(task_runner, workers))
-    stop = threading.Event()
-    watcher = threading.Thread(target=_progress_watcher, args=(storage, name, budget, stop), daemon=True)
-    watcher.start()
+    flow_fn = campaign_flow
     try:
-        result = flow_fn(case=str(case), agent=agent, budget=budget, workers=workers, seed=seed,
-                         storage=str(storage), campaign=name)
+        done = len(EvaluationJournal(ArtifactStore(storage), name).indices())
+        if done:  # (Prefect's INFO line saying so is not shown without --verbose)
+            console.print(f"resuming campaign {name}: {done} calls already journaled")
+        with Watch(console, campaign_poll(storage, name, budget), _columns("run"), total=budget,
+                   initial={"best": "-"}):
+            result = flow_fn(case=str(case), agent=agent, budget=budget, workers=workers,
+                             seed=seed, storage=str(storage), campaign=name,
+                             task_runner=task_runner, dask_address=dask_address)
     except ValueError as exc:
-        stop.set()
-        watcher.join()
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
-    finally:
-        stop.set()
-        watcher.join()
-    _print_report(storage, result["campaign"])
+    _print_report(storage, result["campaign"], result)
 
 
 def _check_agent(agent: str, budget: int, workers: int) -> None:
@@ -233,27 +252,18 @@ def _check_agent(agent: str, budget: int, workers: int) -> None:
         raise typer.Exit(2)
 
 
-def _task_runner(kind: str, workers: int):
-    if kind == "threads":
-        from prefect.task_runners import ThreadPoolTaskRunner
+def _check_runner(kind: str) -> None:
+    from flows.runners import RUNNERS
 
-        return ThreadPoolTaskRunner(max_workers=workers)
-    if kind == "dask":
-        import os
-
-        from prefect_dask import DaskTaskRunner
-
-        address = os.environ.get("DASK_ADDRESS")
-        if address:
-            return DaskTaskRunner(address=address)
-        return DaskTaskRunner(cluster_kwargs={"n_workers": workers, "threads_per_worker": 1,
-                                              "processes": True})
-    err_console.print(f"[red]x[/] --task-runner must be 'threads' or 'dask', got {kind!r}")
-    raise typer.Exit(2)
+    if kind not in RUNNERS:
+        err_console.print(f"[red]x[/] --task-runner must be one of {list(RUNNERS)}, got {kind!r}")
+        raise typer.Exit(2)
 
 
-def _print_report(storage: Path, campaign: str) -> None:
-    """Print a stored report: best parameters, distance to truth, the two tables."""
+def _print_report(storage: Path, campaign: str, result: dict | None = None) -> None:
+    """Print a stored report: best parameters, distance to truth, the paper's tables, then one
+    summary table (best E, headline numbers, failed / penalised calls, where the report is).
+    ``result``: the flow's result, whose ``report_html`` (else ``report_path``) is shown."""
     from storage import ArtifactStore
 
     store = ArtifactStore(storage)
@@ -261,7 +271,8 @@ def _print_report(storage: Path, campaign: str) -> None:
     doc = rep.read_json("report.json")
     best = doc.get("best")
     if doc["calls"]:
-        console.print(f"\n[bold]{doc['campaign']}[/]: {doc['calls']} calls {doc['status_counts']}")
+        console.print(f"\n[bold]{doc['campaign']}[/]: {doc['calls']} calls: "
+                      f"{status_text(doc.get('status_counts'))}")
     else:
         console.print(f"\n[bold]{doc['campaign']}[/]: no calibration campaign under this name")
     if not best:
@@ -280,13 +291,18 @@ def _print_report(storage: Path, campaign: str) -> None:
     if diagnosis:
         console.print(f"diagnosis: selected {diagnosis['selected'] or 'none'}; "
                       f"{diagnosis['verdict']}", highlight=False)
-    console.print(f"report: {rep.file('report.md')}")
+    result = result or {}
+    where = (result.get("report_html") or result.get("report_path")
+             or rep.file("report.html" if "report.html" in rep.files else "report.md"))
+    console.print(summary_table(doc, where))
 
 
 @app.command()
 def report(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
-           campaign: str = typer.Option(..., "--campaign")) -> None:
+           campaign: str = typer.Option(..., "--campaign"),
+           verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Rebuild a campaign's report from stored artifacts (zero simulator calls)."""
+    prefect_environment(verbose)
     from flows.report import report_flow
 
     if not (storage / campaign).is_dir():
@@ -368,10 +384,15 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
           workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
           storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
           name: Optional[str] = typer.Option(None, "--name", help="Benchmark name (default "
-                                             "bench-CASE); the same name resumes")) -> None:
+                                             "bench-CASE); the same name resumes"),
+          task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
+          dask_address: Optional[str] = typer.Option(None, "--dask-address",
+                                                     help=DASK_HELP),
+          verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Equal-budget benchmark: every method x seed is an ordinary campaign (a stopped benchmark
     resumes where it was), then one table, Parquet files and a best-so-far plot."""
-    from flows.bench import bench_flow
+    prefect_environment(verbose)
+    from flows.bench import bench_flow, bench_names
 
     c = _load(case)
     chosen = list(AGENTS) if methods == "all" else [m.strip() for m in methods.split(",")
@@ -383,13 +404,18 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         raise typer.Exit(2)
     for m in chosen:
         _check_agent(m, budget, workers)
+    _check_runner(task_runner)
     storage = storage.resolve()
     console.print(f"benchmark on case {c.name}: {len(chosen)} methods x {seeds} seeds x {budget} "
                   f"calls, {workers} workers, storage {storage}")
-    flow_fn = bench_flow.with_options(task_runner=_task_runner("threads", workers))
+    flow_fn = bench_flow
+    campaigns = bench_names(c.name, chosen, list(range(seeds)), name)[2]
     try:
-        result = flow_fn(case=str(case), methods=chosen, seeds=list(range(seeds)), budget=budget,
-                         workers=workers, storage=str(storage), name=name)
+        with Watch(console, bench_poll(storage, campaigns, budget), _columns("bench"),
+                   total=len(campaigns) * budget, initial={"current": "starting"}):
+            result = flow_fn(case=str(case), methods=chosen, seeds=list(range(seeds)),
+                             budget=budget, workers=workers, storage=str(storage), name=name,
+                             task_runner=task_runner, dask_address=dask_address)
     except ValueError as exc:
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
@@ -420,6 +446,8 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
                                                   "(default CASE-AGENT-seedS)"),
            no_report: bool = typer.Option(False, "--no-report", help="Skip the report-only "
                                           "deployment"),
+           task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
+           dask_address: Optional[str] = typer.Option(None, "--dask-address", help=DASK_HELP),
            list_: bool = typer.Option(False, "--list", help="List hmflow's deployments on the "
                                       "server and exit")) -> None:
     """Deploy the campaign on a schedule (and its report-only rerun) to a Prefect server's
@@ -459,12 +487,19 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
         problems.append(f"--agent must be one of {list(AGENTS)}, got {agent!r}")
     elif budget_problem(agent, budget, workers):
         problems.append(budget_problem(agent, budget, workers))
+    from flows.runners import RUNNERS
+
+    if task_runner not in RUNNERS:
+        problems.append(f"--task-runner must be one of {list(RUNNERS)}, got {task_runner!r}")
+    if dask_address and task_runner != "dask":
+        problems.append("--dask-address needs --task-runner dask")
     if problems:
         for p_ in problems:
             err_console.print(f"[red]x[/] {p_}")
         raise typer.Exit(2)
     params = dep.campaign_parameters(case=case, agent=agent, budget=budget, workers=workers,
-                                     seed=seed, storage=storage, campaign=campaign)
+                                     seed=seed, storage=storage, campaign=campaign,
+                                     task_runner=task_runner, dask_address=dask_address)
     work_pool = dep.ensure_work_pool(pool)
     cron = None if (no_schedule or interval) else (cron or dep.DEFAULT_CRON)
     dep_id = dep.deploy_campaign(name, cron=cron, timezone=timezone, parameters=params,
@@ -498,10 +533,17 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
                                                     "--from-campaign, else CASE-diagnosis)"),
              from_campaign: Optional[str] = typer.Option(
                  None, "--from-campaign", help="Start from this stored campaign's best "
-                 "parameters instead of calibrating the case's parameters first")) -> None:
+                 "parameters instead of calibrating the case's parameters first"),
+             task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
+             dask_address: Optional[str] = typer.Option(None, "--dask-address",
+                                                        help=DASK_HELP),
+             verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Find what the calibrated model gets wrong, name the cause, extend the model, measure the
     gain on the fitted and the held-back history; writes diagnosis.json (path printed)."""
-    from flows.diagnose import campaign_start, diagnose_command
+    prefect_environment(verbose)
+    _check_runner(task_runner)
+    from flows.diagnose import (campaign_start, default_campaign_name, diagnose_flow,
+                                print_diagnosis)
 
     calibrated = None
     if from_campaign:
@@ -517,13 +559,21 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
             raise typer.Exit(2)
         campaign = campaign or from_campaign  # the diagnosis goes into that campaign's report
     case = case or "synthetic"
-    _load(case)  # clear errors before any simulator time or Prefect start-up
+    c = _load(case)  # clear errors before any simulator time or Prefect start-up
+    storage = storage.resolve()
+    # what flows.diagnose.diagnose_command does, with a progress display until the flow ends
+    flow_fn = diagnose_flow
+    poll = diagnosis_poll(storage, campaign or default_campaign_name(c.name))
     try:
-        diagnose_command(case=case, storage=storage, budget=budget, workers=workers,
-                         campaign=campaign, calibrated=calibrated, console=console)
+        with Watch(console, poll, _columns("diagnose" if budget else "diagnose-open"),
+                   total=budget, initial={"step": "-"}):
+            result = flow_fn(case=str(case), storage=str(storage), budget=budget,
+                             campaign=campaign, workers=workers, calibrated=calibrated,
+                             task_runner=task_runner, dask_address=dask_address)
     except ValueError as exc:
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
+    print_diagnosis(result, console)
 
 
 @app.command()

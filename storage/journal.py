@@ -85,6 +85,11 @@ class EvaluationJournal:
             raise
         return target
 
+    def get(self, index: int) -> dict[str, Any] | None:
+        """The record of evaluation ``index``, or None when it is not recorded."""
+        path = self.path(index)
+        return _read_record(path) if path.exists() else None
+
     def indices(self) -> list[int]:
         """Recorded evaluation indices, ascending."""
         try:

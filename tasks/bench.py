@@ -1,5 +1,5 @@
-"""Benchmark tasks: the two reference runs (floor and prior centre) and the consolidation of
-every (method, seed) campaign into Parquet, a Markdown table and a plot (no simulator there)."""
+"""Benchmark task: the consolidation of every (method, seed) campaign into Parquet, a Markdown
+table and a plot (no simulator there; the reference runs are in :mod:`tasks.reference`)."""
 
 from __future__ import annotations
 
@@ -12,27 +12,12 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 
 from hmcore import benchmark
-from hmcore.calibration import Job
-from hmcore.case import Case
 from storage import ArtifactStore, EvaluationJournal, code_version
-
-REFERENCE_AGENT = "reference"
-
-
-def reference_jobs(case: Case) -> list[Job]:
-    """Call 0: the truth's values (known truth) or the deck's own; call 1: the box's centre."""
-    from hmcore.diagnosis.extensions import base_values
-
-    truth = benchmark.case_truth(case.source) or base_values(case.info, case.space)
-    truth = {n: float(truth[n]) for n in case.space.names}
-    centre = np.zeros(case.space.dim)
-    return [Job(0, truth, tuple(float(x) for x in case.space.to_action(truth)), 0, "floor"),
-            Job(1, case.space.to_values(centre), tuple(float(x) for x in centre), 1, "centre")]
-
 
 @task(name="consolidate-benchmark", cache_policy=NO_CACHE)
 def consolidate_bench(store_root: str, bench: str, campaigns: dict[str, tuple[str, int]],
-                      reference: str, case_name: str, budget: int, truth_known: bool):
+                      reference: str, case_name: str, budget: int, truth_known: bool,
+                      workers: int = 1):
     """``campaigns``: campaign name -> (method, seed). Writes ``calls.parquet`` (one row per
     call), ``runs.parquet`` (one per method x seed), ``summary.parquet``, ``summary.md`` and
     ``best_so_far.png`` as a version of ``<bench>/benchmark``."""
@@ -57,7 +42,7 @@ def consolidate_bench(store_root: str, bench: str, campaigns: dict[str, tuple[st
             "sim_time_s": [r.get("sim_time_s") for r in rows],
             "finished_at": [r.get("finished_at", np.nan) for r in rows]}))
     calls = benchmark.best_so_far(pd.concat(frames, ignore_index=True))
-    runs = benchmark.per_run(calls, floor, centre)
+    runs = benchmark.per_run(calls, floor, centre, workers)
     table = benchmark.summary(runs)
     text = benchmark.markdown(table, floor, centre, case_name, truth_known)
     with tempfile.TemporaryDirectory() as tmp:

@@ -10,7 +10,7 @@ from pathlib import Path
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from hmcore.case import Case, load_case
+from hmcore.case import Case
 from hmcore.deck import prepare_run_deck
 from hmcore.report import to_jsonable
 from storage import ArtifactStore, ArtifactVersion, code_version
@@ -34,12 +34,6 @@ def fingerprint_differences(version: ArtifactVersion, case: Case) -> list[str]:
     ``case`` artifact version was made from (empty: the same case)."""
     inputs = version.manifest.get("inputs", {})
     return sorted(k for k, v in case_fingerprint(case).items() if inputs.get(k) != v)
-
-
-@task(name="validate-case", cache_policy=NO_CACHE)
-def validate_case(case_ref: str) -> Case:
-    """Load and validate the case (deck, history, parameters); no simulator time is spent."""
-    return load_case(case_ref)
 
 
 @task(name="prepare-deck", cache_policy=NO_CACHE)

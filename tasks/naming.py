@@ -12,9 +12,17 @@ def artifact_key(name: str, suffix: str) -> str:
     return f"{base}-{suffix}"
 
 
+REFERENCE_PHASES = ("floor", "centre")  # the reference runs (tasks.reference), outside the budget
+
+
 def simulate_run_name() -> str:
-    """``sim-017`` for call 17 (calls are numbered from 1)."""
+    """``sim-017`` for call 17 (calls are numbered from 1); ``ref-floor`` and ``ref-centre``
+    for the two reference runs, which are no call of the budget."""
     from prefect.runtime import task_run
 
     job = task_run.parameters.get("job")
-    return f"sim-{job.index + 1:03d}" if job is not None else "sim"
+    if job is None:
+        return "sim"
+    if job.phase in REFERENCE_PHASES:
+        return f"ref-{job.phase}"
+    return f"sim-{job.index + 1:03d}"

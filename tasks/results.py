@@ -14,6 +14,9 @@ from prefect.cache_policies import NO_CACHE
 from tasks.naming import artifact_key
 from hmcore.calibration import best_record
 from hmcore.report import build_report, to_jsonable
+from hmcore.report_html import ReportInputs, render
+from tasks.curves import collect
+from tasks.reference import CENTRE, FLOOR, reference_name
 from hmcore.results import results_table
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version, sha256_json
 
@@ -74,6 +77,7 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     truth = _truth_for(case_doc)
     markdown, doc = build_report(campaign, case_doc, table, best_doc, truth, diagnosis_doc)
     inputs = {"results": results.ref() if results is not None else None, "case": case.ref(),
+              "report_version": REPORT_VERSION,
               "best": best.ref() if best else None}
     if diagnosis is not None:
         inputs["diagnosis"] = diagnosis.ref()
@@ -81,22 +85,95 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     for name in (diagnosis_doc or {}).get("plots", []):
         if name in diagnosis.files:
             files[name] = diagnosis.file(name).read_bytes()
+    curves = store.latest(campaign, "curves")
+    if curves is None and results is not None:  # a campaign from before curves were stored:
+        curves = collect(store_root, campaign, campaign_reference(store, campaign))  # run dirs
+    if curves is not None:
+        inputs["curves"] = curves.ref()
+    html, pngs = render(report_inputs(store, campaign, case_doc, table, best_doc, truth,
+                                      curves, diagnosis_doc, _diagnosis_markdown(diagnosis_doc),
+                                      {n: files[n] for n in files if n.endswith(".png")}))
+    files["report.html"] = html
+    files.update({n: b for n, b in pngs.items() if not n.startswith("diagnosis__")})
     version = store.put_files(campaign, "report", inputs, files, code_version())
     if publish_prefect_artifacts:
-        publish(campaign, markdown, best_doc, version.file("report.md"))
+        publish(campaign, markdown, best_doc, version.file("report.html"))
     return version
 
 
-def publish(campaign: str, markdown: str, best_doc: dict | None, report_md: Path) -> None:
-    """The report as Prefect artifacts: the Markdown, a link to the stored file, and the paper's
-    three tables of the best case in the paper's rounding."""
+REPORT_VERSION = 2  # 2: report.html; a report of other content is another version
+
+
+def campaign_reference(store: ArtifactStore, campaign: str) -> str:
+    """The campaign holding ``campaign``'s reference runs (stored in its campaign.json; by
+    default CAMPAIGN-reference)."""
+    settings = store.root / campaign / "campaign.json"
+    if settings.is_file():
+        stored = json.loads(settings.read_text()).get("reference")
+        if stored:
+            return stored
+    return reference_name(campaign)
+
+
+def _diagnosis_markdown(diagnosis_doc: dict | None) -> str | None:
+    if diagnosis_doc is None:
+        return None
+    from hmcore.diagnosis.report import markdown_report
+
+    return markdown_report(diagnosis_doc, level=2)
+
+
+def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, best_doc,
+                  truth, curves: ArtifactVersion | None, diagnosis_doc: dict | None,
+                  diagnosis_markdown: str | None, diagnosis_pngs: dict) -> ReportInputs:
+    """Load what report.html is drawn from (stored artifacts only)."""
+    import pandas as pd
+
+    from hmcore.diagnosis.residuals import ObservationSet
+
+    case = store.latest(campaign, "case")
+    observed = case.read_parquet("observed.parquet") if "observed.parquet" in case.files \
+        else None
+    obs = None
+    if observed is not None:
+        end = case_doc.get("history_end_days")
+        if end is None:  # ObservationSet.from_case's split: the last quarter held back
+            end = float(observed.days.min() + 0.75 * (observed.days.max() - observed.days.min()))
+        obs = ObservationSet.from_observed(observed, float(end),
+                                           float(case_doc.get("time_tolerance_days", 30.0)))
+    forecast_doc = curves.read_json("forecast.json") if curves is not None else None
+    refs = {}
+    reference = (forecast_doc or {}).get("reference") or campaign_reference(store, campaign)
+    if (store.root / reference).is_dir():
+        rows = {r["index"]: r for r in EvaluationJournal(store, reference).rows()}
+        refs = {"floor": (rows.get(FLOOR) or {}).get("E"),
+                "centre": (rows.get(CENTRE) or {}).get("E")}
+    settings = store.root / campaign / "campaign.json"
+    agent = json.loads(settings.read_text()).get("agent", "") if settings.is_file() else ""
+    return ReportInputs(
+        campaign=campaign, case_doc=case_doc, agent=agent,
+        table=table if table is not None else pd.DataFrame(columns=["index", "status", "E"]),
+        best=best_doc, observed=obs.rows if obs is not None else None,
+        history_end=obs.history_end_days if obs is not None else case_doc.get("history_end_days"),
+        curves=curves.read_parquet("curves.parquet") if curves is not None else None,
+        forecast=curves.read_parquet("forecast.parquet") if curves is not None else None,
+        forecast_doc=forecast_doc, references={k: v for k, v in refs.items() if v is not None},
+        truth=truth, diagnosis_markdown=diagnosis_markdown,
+        diagnosis_figures=diagnosis_pngs, code=code_version())
+
+
+def publish(campaign: str, markdown: str, best_doc: dict | None, report_html: Path) -> None:
+    """The report as Prefect artifacts: the Markdown, a link to the stored HTML report, and the
+    paper's three tables of the best case in the paper's rounding."""
     from hmcore.paper_tables import paper_tables
 
     create_markdown_artifact(markdown, key=artifact_key(campaign, "report"),
                              description=f"hmflow report {campaign}")
-    create_link_artifact(report_md.resolve().as_uri(), link_text=f"{campaign}: report.md",
+    create_link_artifact(report_html.resolve().as_uri(), link_text=f"{campaign}: report.html",
                          key=artifact_key(campaign, "report-file"),
-                         description="the stored report (versioned, rebuilt by hmflow report)")
+                         description="the HTML report with every well's curves (versioned, "
+                                     "rebuilt by hmflow report; open it on the machine that "
+                                     "holds the store)")
     if not best_doc:
         return
     heads = {"categories": "match by category (best case)",
@@ -108,8 +185,8 @@ def publish(campaign: str, markdown: str, best_doc: dict | None, report_md: Path
 
 
 def _truth_for(case_doc: dict) -> dict | None:
-    """Known true parameters (synthetic cases ship truth.json beside case.toml)."""
-    path = Path(case_doc["source"]).parent / "truth.json"
-    if path.is_file():
-        return json.loads(path.read_text()).get("parameters")
-    return None
+    """Known true parameters: ``truth.json`` beside the case file (the synthetic case) or the
+    ``truth`` of a ``hmflow hide`` case with nothing hidden (see hmcore.benchmark.case_truth)."""
+    from hmcore.benchmark import case_truth
+
+    return case_truth(Path(case_doc["source"]))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import socket
 import time
 from pathlib import Path
 
@@ -65,14 +67,26 @@ def observation_set(case: Case):
     return ObservationSet.from_case(case)
 
 
+def simulate_parameters(case: Case, job: Job, store_root: str, campaign: str, seed: int,
+                        agent: str, observations=None) -> dict:
+    """The keyword arguments of :func:`simulate`, for a task runner's ``submit``."""
+    return {"case": case, "job": job, "store_root": store_root, "campaign": campaign,
+            "seed": seed, "agent": agent, "observations": observations}
+
+
 @task(name="simulate", cache_policy=NO_CACHE, retries=2, retry_delay_seconds=1,
       retry_condition_fn=retry_transient, task_run_name=simulate_run_name)
 def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, agent: str,
              observations=None) -> dict:
     """Evaluate ``job`` and journal the record; transient failures raise to be retried. With
     ``observations`` (an ObservationSet) the record also holds ``residuals``, the whitened
-    residual vector of the fitted history (least-squares and ensemble methods use it)."""
+    residual vector of the fitted history (least-squares and ensemble methods use it).
+    A call already journaled (its worker died after writing the record, and the cluster
+    reran it) returns the journaled record: never simulated or recorded twice."""
     store = ArtifactStore(store_root)
+    journaled = EvaluationJournal(store, campaign).get(job.index)
+    if journaled is not None:  # a rerun of a call whose worker died after journaling it
+        return journaled
     run_dir = fresh_dir(Path(store_root) / campaign / "runs" / f"{job.index:06d}")
     ev, attempt = evaluate_or_raise_transient(case, job.values, run_dir)
     extra = {}
@@ -80,7 +94,8 @@ def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, ag
         extra["residuals"] = observations.residual_vector(ev.responses, "fit").tolist()
     record = to_jsonable({"index": job.index, "lane": job.lane, "phase": job.phase,
                           "action": list(job.action), "seed": seed, "agent": agent,
-                          "attempts": attempt, "finished_at": time.time(), **ev.to_record(),
-                          **extra})
+                          "attempts": attempt, "finished_at": time.time(),
+                          "host": socket.gethostname(), "host_pid": os.getpid(),  # who ran it
+                          **ev.to_record(), **extra})
     EvaluationJournal(store, campaign).record(job.index, record)
     return record

@@ -40,8 +40,12 @@ def test_bench_runs_every_method_and_seed_with_exactly_the_budgeted_calls(tmp_pa
     assert set(calls[calls.method == "lm"].phase) >= {"jacobian"}
     assert set(calls[calls.method == "esmda"].phase) >= {"ensemble", "posterior"}
     # each campaign's journal holds the same calls as the table
+    from flows.bench import bench_names
+
+    names = {ms: c for c, ms in bench_names("synthetic", list(AGENTS), list(range(SEEDS)),
+                                            "b")[2].items()}
     for (method, seed), n in counts.items():
-        journal = tmp_path / "store" / f"b-{method}-s{seed}" / "evaluations"
+        journal = tmp_path / "store" / names[(method, seed)] / "evaluations"
         assert len(list(journal.glob("*.json"))) == n
     table = pd.read_parquet(version / "summary.parquet")
     assert sorted(table.method) == sorted(AGENTS) and (table.seeds == SEEDS).all()

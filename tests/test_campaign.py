@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -192,3 +191,17 @@ def test_sac_paper_campaign_journals_and_resumes_with_the_real_simulator(tmp_pat
     after = {r["index"]: r for r in journal.rows()}
     assert sorted(after) == list(range(6)) and all(after[i] == before[i] for i in before)
     assert len(list((storage / "paper" / "runs").iterdir())) == 6
+
+
+def test_a_call_journaled_before_its_worker_died_is_not_simulated_again(tmp_path):
+    """A cluster reruns the task of a worker that died after journaling its record: the rerun
+    returns the journaled record and neither simulates nor records again."""
+    from hmcore.calibration import Job
+    from storage import ArtifactStore, EvaluationJournal
+    from tasks.simulate import simulate
+
+    journal = EvaluationJournal(ArtifactStore(tmp_path), "c")
+    journal.record(2, {"E": 0.25, "status": "COMPLETE", "action": [0.0]})
+    job = Job(2, {"x": 1.0}, (0.0,), 0, "explore")
+    got = simulate.fn(None, job, str(tmp_path), "c", 0, "random")  # no case: nothing may run
+    assert got == journal.get(2) and not (tmp_path / "c" / "runs").exists()

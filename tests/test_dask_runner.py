@@ -1,6 +1,5 @@
-"""The campaign flow on prefect-dask's DaskTaskRunner with a real local Dask cluster (2 worker
-processes, 1 thread each) and real OPM Flow runs, against a temporary Prefect server
-(``prefect_test_harness``, SQLite in a temporary directory, temporary PREFECT_HOME).
+"""Dask workers import hmflow's own packages (the campaign on a Dask cluster started from the
+command line, and a worker killed mid-call, are in tests/test_cluster.py).
 
 A Dask worker puts its local directory first on ``sys.path`` and, with a memory limit (the
 default), keeps its spill buffer in ``<local directory>/storage``: a namespace directory named
@@ -17,99 +16,14 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
-from pathlib import Path
 
 import pytest
 
-PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
-PUNQ_FILES = ("PUNQS3.DATA", "PUNQS3.GEO", "PUNQS3.PRP", "punqs3_observed_full_history.csv")
-BUDGET = 4
-
-_missing = [n for n in PUNQ_FILES if not (PUNQ / n).is_file()]
-requires_punq = pytest.mark.skipif(
-    bool(_missing), reason=f"PUNQ-S3 data not found in {PUNQ} (expected ../shared/punqs3 next "
-                           f"to the repository; missing {_missing})")
 requires_dask = pytest.mark.skipif(importlib.util.find_spec("prefect_dask") is None,
                                    reason="prefect-dask is not installed")
 
 # loopback only; the scheduler's HTTP server on a free port rather than 8787
 LOOPBACK = {"host": "127.0.0.1", "dashboard_address": "127.0.0.1:0"}
-CLUSTER_KWARGS = {"n_workers": 2, "threads_per_worker": 1, "processes": True, **LOOPBACK}
-
-
-def _recording_cluster_class():
-    """A LocalCluster that, when the task runner closes it, notes which tasks its scheduler
-    computed and on which worker processes (proof that the simulations ran on Dask)."""
-    import distributed
-
-    class RecordingCluster(distributed.LocalCluster):
-        seen: list[dict] = []
-
-        def close(self, *args, **kwargs):
-            s = self.scheduler
-            RecordingCluster.seen.append({
-                "prefixes": {name: {"compute_s": dict(p.all_durations).get("compute", 0.0),
-                                    "states": dict(p.state_counts)}
-                             for name, p in s.task_prefixes.items()},
-                "worker_pids": sorted(w.pid for w in s.workers.values()),
-                "nthreads": sorted(w.nthreads for w in s.workers.values())})
-            return super().close(*args, **kwargs)
-
-    return RecordingCluster
-
-
-def _write_case(tmp_path: Path) -> Path:
-    path = tmp_path / "punqs3.toml"
-    path.write_text(f'[case]\nname = "punqs3"\ndeck = "{PUNQ / "PUNQS3.DATA"}"\n'
-                    f'observed = "{PUNQ / "punqs3_observed_full_history.csv"}"\n'
-                    f"history_end_days = 2936\n")
-    return path
-
-
-@pytest.mark.opm
-@requires_punq
-@requires_dask
-@pytest.mark.timeout(480)
-def test_campaign_flow_on_a_local_dask_cluster(tmp_path):
-    from prefect.settings import PREFECT_HOME, temporary_settings
-    from prefect.testing.utilities import prefect_test_harness
-    from prefect_dask import DaskTaskRunner
-
-    from flows.campaign import campaign_flow
-    from storage import ArtifactStore
-
-    cluster_class = _recording_cluster_class()
-    case = _write_case(tmp_path)
-    storage = tmp_path / "store"
-    home = tmp_path / "prefect-home"
-    home.mkdir()
-    runner = DaskTaskRunner(cluster_class=cluster_class, cluster_kwargs=dict(CLUSTER_KWARGS))
-    with temporary_settings(updates={PREFECT_HOME: str(home)}):
-        with prefect_test_harness(server_startup_timeout=120):
-            result = campaign_flow.with_options(task_runner=runner)(
-                case=str(case), agent="random", budget=BUDGET, workers=2, seed=1,
-                storage=str(storage), campaign="punq-dask")
-
-    assert result["campaign"] == "punq-dask" and result["storage"] == str(storage.resolve())
-    rows = [json.loads(p.read_text())
-            for p in sorted((storage / "punq-dask" / "evaluations").glob("*.json"))]
-    assert [r["index"] for r in rows] == list(range(BUDGET))
-    # every call simulated and scored (some may be penalised by a physics check, none failed)
-    assert all(r["status"] in ("COMPLETE", "INVALID") for r in rows), [r.get("reason") for r in rows]
-    store = ArtifactStore(storage)
-    table = store.latest("punq-dask", "results").read_parquet("evaluations.parquet")
-    assert len(table) == BUDGET and (table["status"] != "FAIL").all()
-    assert store.latest("punq-dask", "best") is not None
-    assert Path(result["report_path"]).is_file()
-
-    # the simulations ran as Dask tasks on two worker processes, one thread each
-    assert len(cluster_class.seen) == 1
-    seen = cluster_class.seen[0]
-    assert set(seen["prefixes"]) == {"simulate"}, seen
-    assert seen["prefixes"]["simulate"]["states"].get("memory") == BUDGET, seen
-    assert seen["prefixes"]["simulate"]["compute_s"] > 0
-    assert len(seen["worker_pids"]) == 2 and os.getpid() not in seen["worker_pids"]
-    assert seen["nthreads"] == [1, 1]
 
 
 PROBE = """

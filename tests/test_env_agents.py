@@ -155,17 +155,26 @@ def test_sac_learns_from_failures_capped_at_the_worst_scored_cost():
     """A failed run's penalty (10) must not dwarf the E spread the critic has to learn."""
     from hmcore.agents.base import Proposal
 
-    p = SACProposer(SPACE.dim, 0, SACSettings(learning_starts=4, failure_cost_factor=1.5))
+    p = SACProposer(SPACE.dim, 0, SACSettings(learning_starts=4, failure_cost_factor=1.5,
+                                              reward_transform="log", reward_scale=1.0))
     props = p.ask(4)
     p.tell(props, [Feedback(-0.2, 0.2), Feedback(-10.0, 10.0, False), Feedback(-0.6, 0.5),
                    Feedback(-0.1, 0.1)])
     np.testing.assert_allclose(p.learning_costs(), [0.2, 0.9, 0.6, 0.1])
     rewards = p.model.replay_buffer.rewards[:4, 0]
-    np.testing.assert_allclose(rewards, -p.learning_costs() * p.settings.reward_scale, rtol=1e-6)
+    # the critic learns -log(cost): 1.1x the floor and the floor stay 0.095 apart
+    np.testing.assert_allclose(rewards, -np.log(p.learning_costs()) * p.settings.reward_scale,
+                               rtol=1e-6)
     # a worse scored run raises the cap, and the buffered failure follows it
     p.tell([Proposal(props[0].action, props[0].observation, 0)], [Feedback(-2.0, 2.0)])
     assert p.learning_costs()[1] == pytest.approx(3.0)
-    assert p.model.replay_buffer.rewards[1, 0] == pytest.approx(-3.0 * p.settings.reward_scale)
+    assert p.model.replay_buffer.rewards[1, 0] == pytest.approx(-np.log(3.0)
+                                                                * p.settings.reward_scale)
+    linear = SACProposer(SPACE.dim, 0, SACSettings(learning_starts=4, reward_transform="linear"))
+    linear.tell(linear.ask(4), [Feedback(-0.2, 0.2), Feedback(-10.0, 10.0, False),
+                                Feedback(-0.6, 0.5), Feedback(-0.1, 0.1)])
+    np.testing.assert_allclose(linear.model.replay_buffer.rewards[:4, 0],
+                               -linear.learning_costs() * linear.settings.reward_scale, rtol=1e-6)
 
 
 # ----------------------------------------------------------------------------- sac-paper
@@ -222,3 +231,47 @@ def test_sac_paper_resumes_by_replaying_the_journal_and_refuses_a_diverged_one()
 def test_sac_paper_refuses_a_budget_that_is_not_a_multiple_of_the_workers():
     with pytest.raises(ValueError, match="multiple of workers"):
         _run(make_proposer("sac-paper", SPACE.dim, 0), budget=7, workers=2)
+
+
+def test_trust_region_grows_on_successes_shrinks_on_failures_and_restarts():
+    from hmcore.agents.trust_region import TrustRegion, TrustRegionSettings
+
+    tr = TrustRegion(5, TrustRegionSettings(side_init=0.8, side_min=0.1))
+    assert np.all(tr.bounds()[0] == -1) and np.all(tr.bounds()[1] == 1)  # nothing told yet
+    a = np.zeros((2, 5))
+    tr.update(a, np.array([1.0, 2.0]))           # first scored: centre set
+    tr.update(a + 0.1, np.array([0.5, 3.0]))     # success 1
+    tr.update(a + 0.2, np.array([0.25, 3.0]))    # success 2: doubled
+    assert tr.side == pytest.approx(1.6) and tr.centre == pytest.approx(np.full(5, 0.2))
+    lo, hi = tr.bounds()
+    assert np.all(lo >= -1) and np.all(hi <= 1) and lo[0] == pytest.approx(-0.6)
+    for _ in range(3):                           # ceil(max(4, 5) / 2) = 3 failures: halved
+        tr.update(a, np.array([9.0, np.inf]))
+    assert tr.side == pytest.approx(0.8)
+    for _ in range(4 * 3):                       # 0.4, 0.2, 0.1, 0.05 < 0.1: restart
+        tr.update(a, np.array([9.0, 9.0]))
+    assert tr.restarts == 1 and tr.side == pytest.approx(0.8) and tr.best == 0.25
+
+
+def test_sac_starts_on_sobol_points_then_proposes_apart_inside_its_trust_region():
+    from scipy.stats import qmc
+
+    from hmcore.agents.base import Proposal
+
+    p = SACProposer(SPACE.dim, 3, SACSettings(learning_starts=4, start="sobol", candidates=512))
+    first = np.stack([q.action for q in p.ask(4)])
+    sobol = qmc.Sobol(SPACE.dim, scramble=True, seed=np.random.default_rng([3, 1]))
+    np.testing.assert_allclose(first, sobol.random(4) * 2 - 1, rtol=1e-6)
+    costs = [0.4, 0.2, 0.9, 0.6]
+    p.tell([Proposal(a, np.zeros(SPACE.dim + 1, np.float32), i) for i, a in enumerate(first)],
+           [Feedback(-c, c) for c in costs])
+    lo, hi = p.region.bounds()
+    assert np.allclose((lo + hi)[np.abs(first[1]) < 1 - p.region.side / 2] / 2,
+                       first[1][np.abs(first[1]) < 1 - p.region.side / 2])  # centred on the best
+    batch = np.stack([q.action for q in p.ask(3)])
+    assert np.all(batch >= lo - 1e-6) and np.all(batch <= hi + 1e-6)
+    gaps = [np.max(np.abs(batch[i] - batch[j])) for i in range(3) for j in range(i)]
+    assert min(gaps) >= p.settings.spread * p.region.side - 1e-6
+    rec = p.recommend()
+    assert np.all(rec >= lo - 1e-6) and np.all(rec <= hi + 1e-6)
+    assert not np.allclose(rec, first[1])  # never the incumbent again

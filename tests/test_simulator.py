@@ -339,3 +339,25 @@ def test_cli_evaluate_refuses_a_non_empty_out_dir(punq_case, punq_case_toml, tmp
     result = CliRunner().invoke(app, ["evaluate", "--case", str(punq_case_toml), "--out", str(out)])
     assert result.exit_code == 2 and fake.calls == []
     assert (out / "keep.txt").read_text() == "precious"
+
+
+def test_a_timeout_kills_the_simulator_and_everything_it_started(tmp_path):
+    """A wrapper that starts a child of its own (as an MPI launcher or a vendor script does):
+    on timeout the whole process group dies, not only the wrapper."""
+    import time
+
+    pids = tmp_path / "pids"
+    script = tmp_path / "wrapper.sh"
+    script.write_text(f"#!/bin/sh\nsleep 60 &\necho $$ $! > {pids}\nwait\n")
+    script.chmod(0o755)
+    deck = tmp_path / "CASE.DATA"
+    deck.write_text("RUNSPEC\n")
+    sim = CommandLineSimulator(template=f"{script} {{deck}}", timeout_s=1.0)
+    with pytest.raises(SimulationError) as info:
+        sim.run(deck, tmp_path / "run")
+    assert info.value.reason == "timeout"
+    time.sleep(0.5)
+    for pid in map(int, pids.read_text().split()):  # gone (or a zombie awaiting its reaper)
+        stat = Path(f"/proc/{pid}/stat")
+        state = stat.read_text().rsplit(")", 1)[1].split()[0] if stat.exists() else "gone"
+        assert state in ("gone", "Z"), (pid, state)

@@ -517,3 +517,12 @@ def test_campaign_resumes_on_a_new_version_of_the_same_case_content(tmp_path):
         check_campaign_settings(str(tmp_path), "c", settings(3, "bbb"))
     with pytest.raises(ValueError, match="other settings"):
         check_campaign_settings(str(tmp_path), "c", {**settings(2, "aaa"), "seed": 1})
+
+
+def test_journal_get_returns_one_record_or_none(tmp_path):
+    from storage import ArtifactStore, EvaluationJournal
+
+    j = EvaluationJournal(ArtifactStore(tmp_path), "c")
+    assert j.get(3) is None
+    j.record(3, {"E": 0.5})
+    assert j.get(3) == {"E": 0.5, "index": 3} and j.get(4) is None

@@ -16,9 +16,17 @@ never run the simulator; the caller evaluates what they ask and journals every c
 
 from hmcore.agents.base import Driver, Feedback, Proposal, Proposer
 from hmcore.agents.random_search import RandomProposer
+from hmcore.agents.sac import VERSION as SAC_VERSION
 from hmcore.agents.sac import SACProposer, SACSettings
 
 AGENTS = ("sac", "sac-paper", "random", "sobol", "cmaes", "de", "bo", "lm", "esmda")
+VERSIONS = {"sac": SAC_VERSION}
+"""A method whose proposals changed: campaigns are bound to the version that made their calls
+(a resume under another version is refused; a benchmark names its campaigns after it)."""
+
+
+def method_version(name: str) -> int:
+    return VERSIONS.get(name, 1)
 
 
 def make_proposer(name: str, dim: int, seed: int, workers: int = 1, budget: int = 200,
@@ -77,5 +85,5 @@ def budget_problem(name: str, budget: int, workers: int) -> str | None:
     return None
 
 
-__all__ = ["AGENTS", "Driver", "Feedback", "Proposal", "Proposer", "RandomProposer",
+__all__ = ["AGENTS", "VERSIONS", "method_version", "Driver", "Feedback", "Proposal", "Proposer", "RandomProposer",
            "SACProposer", "SACSettings", "budget_problem", "make_proposer"]

@@ -74,7 +74,7 @@ class ESMDADriver:
             while len(extra) < calls.left:
                 extra.append(np.clip(self.rng.multivariate_normal(X.mean(axis=1), cov), -1, 1))
             if calls.left > 0:
-                calls.run(np.array(extra[: calls.left]), phase="posterior")
+                calls.run(np.array(extra[: calls.left]), phase="posterior_extra")
         except BudgetExhausted:
             pass
         return calls.records

@@ -10,8 +10,9 @@ import pandas as pd
 
 from hmcore.diagnosis.residuals import ObservationSet
 
-PLOTTED = ("WBHP", "WGOR", "WWCT")
-LABELS = {"WBHP": "BHP (bar)", "WGOR": "GOR (sm3/sm3)", "WWCT": "water cut"}
+PLOTTED = ("WOPR", "WWPR", "WGPR", "WBHP", "WGOR", "WWCT")
+LABELS = {"WOPR": "oil rate", "WWPR": "water rate", "WGPR": "gas rate", "WBHP": "BHP",
+          "WGOR": "GOR", "WWCT": "water cut (fraction)"}
 
 
 def _f(v, digits: int = 4) -> str:
@@ -119,32 +120,38 @@ def plot_wells(obs: ObservationSet, base: pd.DataFrame, extended: pd.DataFrame |
     out = []
     rows = obs.rows
     for well in wells:
-        fig, axes = plt.subplots(len(PLOTTED), 1, figsize=(8, 8.5), sharex=True)
+        fig, grid = plt.subplots(3, 2, figsize=(11, 8.5), sharex=True)
+        axes = grid.T.flatten()  # rates down the left column, BHP / GOR / WCT on the right
         for ax, q in zip(axes, PLOTTED):
             o = rows[(rows.well == well) & (rows.quantity == q)]
-            if q != "WBHP":
+            if q in ("WGOR", "WWCT"):
                 o = o[o.flowing]
-            ax.errorbar(o.days, o.observed, yerr=o.sigma, fmt="o", ms=3, color="k", alpha=0.6,
-                        elinewidth=0.6, label="observed")
+            y, s = o.observed.to_numpy(float), np.nan_to_num(o.sigma.to_numpy(float))
+            low = np.minimum(s, np.maximum(y, 0.0))  # bars stop at 0 (rates, ratios, cut)
+            high = np.minimum(s, 1.0 - y) if q == "WWCT" else s  # and a water cut at 1
+            ax.errorbar(o.days, y, yerr=[low, np.maximum(high, 0.0)], fmt="o", ms=3,
+                        color="k", alpha=0.6, elinewidth=0.6, label="observed")
             for resp, name, style in ((base, "calibrated", "C0-"),
-                                      (extended, f"extended {label}", "C3-")):
+                                      (extended, f"extended {label}".strip(), "C3-")):
                 if resp is None:
                     continue
                 s = resp[(resp.well == well) & (resp.quantity == q)].sort_values("days")
-                if q != "WBHP":  # GOR and water cut are not defined while the well is shut
+                if q in ("WGOR", "WWCT"):  # not defined while the well is shut
                     oil = resp[(resp.well == well) & (resp.quantity == "WOPR")]
                     s = s[s.days.isin(oil.days[oil.value > 0])]
-                else:  # a summary reports BHP 0 before the well exists: not a pressure
+                elif q == "WBHP":  # a summary reports BHP 0 before the well exists
                     s = s[s.value > 0]
                 ax.plot(s.days, s.value, style, lw=1.4, label=name)
             if obs.history_end_days is not None:
                 ax.axvline(obs.history_end_days, color="gray", ls="--", lw=1)
             ax.set_ylabel(LABELS[q])
             ax.grid(alpha=0.3)
-        axes[0].set_title(f"{well}: observed vs calibrated vs extended (dashed: end of fitted "
-                          "history)", fontsize=10)
+        what = "calibrated and extended" if extended is not None else "calibrated"
+        fig.suptitle(f"{well}: observed vs {what} model (dashed: end of fitted history)",
+                     fontsize=10)
         axes[0].legend(fontsize=8, loc="best")
-        axes[-1].set_xlabel("days")
+        for ax in grid[-1]:
+            ax.set_xlabel("days")
         fig.tight_layout()
         path = Path(out_dir) / f"residuals_{''.join(ch if ch.isalnum() else '_' for ch in well)}.png"
         fig.savefig(path, dpi=90)

@@ -1,0 +1,39 @@
+"""Where a flow's simulator calls run, chosen by a flow parameter (so the CLI and a deployment
+choose alike): ``threads`` (a thread pool in the flow's process, each simulation its own
+subprocess) or ``dask`` (a Dask cluster: the one at ``dask_address`` or ``DASK_ADDRESS``,
+whose workers may be on other machines, else a local one with ``workers`` processes).
+
+The flow enters the runner itself and submits ``simulate`` tasks to it, so the choice is made
+at run time, not when the flow is decorated or deployed. Results and run directories go to
+the shared store (an absolute path every worker sees); nothing lives only in worker memory.
+A Dask worker that dies mid-call has its task rerun on another worker by the Dask scheduler
+(``distributed.scheduler.allowed-failures``, 3 by default); the call's record is write-once
+in the journal and its run directory is fresh (``tasks.simulate.fresh_dir``), so a rerun
+neither loses nor duplicates an evaluation.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Literal
+
+Runner = Literal["threads", "dask"]
+RUNNERS = ("threads", "dask")
+
+
+def task_runner(kind: str, workers: int, dask_address: str | None = None):
+    """A Prefect task runner (not started: enter it with ``with``)."""
+    if kind == "threads":
+        from prefect.task_runners import ThreadPoolTaskRunner
+
+        return ThreadPoolTaskRunner(max_workers=workers)
+    if kind == "dask":
+        from prefect_dask import DaskTaskRunner
+
+        address = dask_address or os.environ.get("DASK_ADDRESS")
+        if address:
+            return DaskTaskRunner(address=address)
+        return DaskTaskRunner(cluster_kwargs={"n_workers": workers, "threads_per_worker": 1,
+                                              "processes": True,
+                                              "dashboard_address": "127.0.0.1:0"})
+    raise ValueError(f"task_runner must be one of {list(RUNNERS)}, got {kind!r}")

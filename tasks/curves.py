@@ -1,0 +1,95 @@
+"""Curves and forecast of a campaign as a versioned artifact (reads run dirs; no simulator).
+
+``<campaign>/curves/vN``: ``curves.parquet`` (one row per member, well, quantity and time:
+``member`` (best, centre, truth or deck (the floor run), or call-N), ``call`` (from 1; 0 for the reference runs), then
+:mod:`hmcore.curves`' columns), ``forecast.parquet`` (:func:`hmcore.forecast.forecast_table`)
+and ``forecast.json`` (member kind, the caveat to print, member calls, whether the floor run is
+the truth). The report is drawn from it, so it survives the deletion of the run dirs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+from prefect import task
+from prefect.cache_policies import NO_CACHE
+
+from hmcore.benchmark import case_truth
+from hmcore.calibration import best_record
+from hmcore.curves import read_curves
+from hmcore.forecast import DEFAULT_MEMBERS, choose_members, forecast_table
+from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version
+from tasks.reference import CENTRE, FLOOR
+
+
+def _summary(run_dir: str | None) -> Path | None:
+    if not run_dir or not Path(run_dir).is_dir():
+        return None
+    found = sorted(Path(run_dir).glob("*.SMSPEC"))
+    return found[0] if found else None
+
+
+def collect(store_root: str, campaign: str, reference: str | None,
+            members: int = DEFAULT_MEMBERS) -> ArtifactVersion | None:
+    """Build the ``curves`` artifact of ``campaign`` from its latest results, best case and
+    reference journal (see the module docstring); None when no run left a summary."""
+    store = ArtifactStore(store_root)
+    results = store.latest(campaign, "results")
+    case = store.latest(campaign, "case")
+    if results is None or case is None:
+        return None
+    case_doc = case.read_json("case.json")
+    wells = list(case_doc["wells"])
+    records = results.read_json("records.json")["records"]
+    by_index = {r["index"]: r for r in records}
+    chosen = choose_members(records, members)
+    best = best_record(records)
+    best_dir = store.latest(campaign, "best")
+    frames, calls, skipped = [], {}, {}
+
+    def add(member: str, call: int, summary: Path | None) -> pd.DataFrame | None:
+        if summary is None:
+            return None
+        try:
+            c = read_curves(summary, wells)
+        except Exception as exc:  # a summary a dead or killed run left half-written
+            skipped[member] = f"{summary}: {type(exc).__name__}: {exc}"
+            return None
+        frames.append(c.assign(member=member, call=call))
+        return c
+
+    def scored(record: dict | None) -> dict:
+        """A run that ran to the end (scored; penalised runs too), else nothing to read."""
+        return record if record and record.get("status") in ("COMPLETE", "INVALID") else {}
+
+    if best is not None:
+        archived = best_dir.path if best_dir is not None else None
+        add("best", best["index"] + 1, _summary(best.get("run_dir")) or _summary(archived))
+    refs = {}
+    if reference and (store.root / reference).is_dir():
+        refs = {r["index"]: r for r in EvaluationJournal(store, reference).rows()}
+    truth_known = case_truth(Path(case_doc["source"])) is not None
+    floor = add("truth" if truth_known else "deck", 0,
+                _summary(scored(refs.get(FLOOR)).get("run_dir")))
+    add("centre", 0, _summary(scored(refs.get(CENTRE)).get("run_dir")))
+    for index in chosen.indices:
+        c = add(f"call-{index + 1}", index + 1, _summary(by_index[index].get("run_dir")))
+        if c is not None:
+            calls[index + 1] = c
+    if not frames:
+        return None
+    table = forecast_table(calls, wells, floor if truth_known and floor is not None else None)
+    curves = pd.concat(frames, ignore_index=True)[["member", "call", "well", "quantity", "days",
+                                                   "value", "unit"]]
+    doc = {"kind": chosen.kind.value, "caveat": chosen.kind.caveat,
+           "member_calls": sorted(calls), "requested": members, "truth_known": truth_known,
+           "truth_run": floor is not None and truth_known, "reference": reference,
+           "skipped": skipped}
+    return store.put_files(campaign, "curves", {"results": results.ref(),
+                                                "reference": reference, "members": members},
+                           {"curves.parquet": curves, "forecast.parquet": table,
+                            "forecast.json": doc}, code_version())
+
+
+collect_curves = task(name="collect-curves", cache_policy=NO_CACHE)(collect)

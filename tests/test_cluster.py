@@ -1,0 +1,140 @@
+"""Simulator calls on workers in other processes, as on a cluster: a `dask scheduler` and two
+`dask worker` processes started from the command line, `hmflow run --task-runner dask
+--dask-address ...` (real OPM Flow, real Prefect, real store); then the same with one worker
+killed (its whole process group, as when a machine goes away) in the middle of a call: the
+call is rerun on the other worker and the campaign ends with exactly the budgeted
+evaluations, none lost, none twice."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+
+DASK = Path(sys.executable).with_name("dask")
+BUDGET = 6
+
+pytestmark = [pytest.mark.opm,
+              pytest.mark.skipif(not DASK.exists(), reason="the dask command is not installed")]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start(args: list[str], log: Path, cwd: Path) -> subprocess.Popen:
+    """A process in its own process group (killed as a whole, as a lost machine is)."""
+    return subprocess.Popen(args, stdout=log.open("w"), stderr=subprocess.STDOUT, cwd=cwd,
+                            start_new_session=True)
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait(timeout=30)
+
+
+@contextmanager
+def dask_cluster(root: Path, workers: int = 2):
+    """`dask scheduler` + ``workers`` x `dask worker` (1 process, 1 thread each), loopback."""
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    procs = [_start([str(DASK), "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                     "--dashboard-address", "127.0.0.1:0"], root / "scheduler.log", root)]
+    workers_ = []
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                time.sleep(0.5)
+        for k in range(workers):
+            (root / f"w{k}").mkdir(exist_ok=True)
+            workers_.append(_start([str(DASK), "worker", address, "--nworkers", "1",
+                                    "--nthreads", "1", "--name", f"w{k}",
+                                    "--local-directory", str(root / f"w{k}")],
+                                   root / f"worker{k}.log", root))
+        import distributed
+
+        with distributed.Client(address, timeout=60) as client:
+            client.wait_for_workers(workers, timeout=120)
+        yield {"address": address, "workers": workers_}
+    finally:
+        for p in workers_ + procs:
+            _kill_group(p)
+
+
+def _run(root: Path, address: str, campaign: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "hmflow.cli", "run", "--agent", "random", "--budget",
+         str(BUDGET), "--workers", "2", "--seed", "3", "--campaign", campaign, "--storage",
+         str(root / "store"), "--task-runner", "dask", "--dask-address", address],
+        cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _records(root: Path, campaign: str) -> list[dict]:
+    return [json.loads(p.read_text())
+            for p in sorted((root / "store" / campaign / "evaluations").glob("*.json"))]
+
+
+def _worker_pids(address: str) -> dict[str, int]:
+    import distributed
+
+    with distributed.Client(address, timeout=30) as client:
+        return {k: v for k, v in client.run(os.getpid).items()}
+
+
+def test_a_campaign_runs_on_two_dask_worker_processes(tmp_path):
+    with dask_cluster(tmp_path) as cluster:
+        pids = _worker_pids(cluster["address"])
+        run = _run(tmp_path, cluster["address"], "on-dask")
+        out, _ = run.communicate(timeout=900)
+    assert run.returncode == 0, out[-4000:]
+    rows = _records(tmp_path, "on-dask")
+    assert [r["index"] for r in rows] == list(range(BUDGET))
+    assert all(r["status"] in ("COMPLETE", "INVALID") for r in rows), rows
+    # each simulation ran in a worker process, not in hmflow's: the simulator's parent pid
+    ran_in = {r.get("host_pid") for r in rows}
+    assert ran_in <= set(pids.values()) and len(ran_in) == 2, (ran_in, pids)
+
+
+def test_a_worker_killed_mid_call_loses_and_duplicates_nothing(tmp_path):
+    with dask_cluster(tmp_path) as cluster:
+        run = _run(tmp_path, cluster["address"], "killed")
+        runs = tmp_path / "store" / "killed" / "runs"
+        victim, killed_at = None, None
+        deadline = time.time() + 600
+        while time.time() < deadline and victim is None:  # the 3rd call has started
+            started = sorted(p.name for p in runs.iterdir()) if runs.is_dir() else []
+            if any(re.fullmatch(r"00000[2-5]", n) for n in started):
+                busy = {r["index"] for r in _records(tmp_path, "killed")}
+                running = [n for n in started if int(n[:6]) not in busy]
+                if running:
+                    victim, killed_at = cluster["workers"][0], running
+                    _kill_group(victim)
+            time.sleep(0.2)
+        assert victim is not None, "no call was seen running"
+        out, _ = run.communicate(timeout=900)
+    assert run.returncode == 0, out[-4000:]
+    rows = _records(tmp_path, "killed")
+    assert [r["index"] for r in rows] == list(range(BUDGET)), [r["index"] for r in rows]
+    assert all(r["status"] in ("COMPLETE", "INVALID") for r in rows), rows
+    assert all(Path(r["run_dir"]).is_dir() for r in rows)
+    # the killed call was run again (a fresh directory beside the one the dead worker left)
+    reruns = [p.name for p in runs.iterdir() if "." in p.name]
+    assert reruns, (sorted(p.name for p in runs.iterdir()), killed_at)
