@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from enum import Enum
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,15 +36,36 @@ class CaseError(ValueError):
         super().__init__("\n".join(lines))
 
 
+class FailureKind(str, Enum):
+    """Why a simulator call gave no usable result, decided from facts (exit code, signal,
+    timer, files), never from the simulator's message text."""
+
+    PARSE_ERROR = "parse_error"            # the simulator refused the deck (its exit code)
+    NO_CONVERGENCE = "no_convergence"      # it stopped before the end of the schedule
+    CRASH = "crash"                        # any other non-zero exit, or it could not start
+    TIMEOUT = "timeout"                    # no result within timeout_s (its process group killed)
+    KILLED = "killed"                      # ended by a signal (out of memory, a lost node)
+    NO_OUTPUT = "no_output"                # exit 0 but no summary file
+    UNREADABLE_OUTPUT = "unreadable_output"  # a summary that cannot be read (garbage, empty)
+    INVALID_VALUES = "invalid_values"      # responses that are not finite numbers
+    NO_MATCH = "no_match"                  # no simulated record near any observation
+    NOT_RUNNABLE = "not_runnable"          # physically impossible values, not simulated
+
+    @property
+    def transient(self) -> bool:
+        """Worth running again: only a call ended from outside (a signal, a lost worker)."""
+        return self is FailureKind.KILLED
+
+
 @dataclass
 class SimulationError(RuntimeError):
     """A simulation that did not produce usable results.
 
-    ``reason`` is one of ``parse_error``, ``timeout``, ``killed`` (by a signal), ``crash``,
-    ``no_convergence``, ``no_output``; ``log_tail`` holds the end of the simulator's stderr/log.
+    ``reason`` is a :class:`FailureKind` (a ``str``: it compares equal to its value);
+    ``log_tail`` holds the end of the simulator's stderr/log.
     """
 
-    reason: str
+    reason: FailureKind
     message: str
     run_dir: Path | None = None
     log_tail: str = ""

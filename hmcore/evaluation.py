@@ -14,12 +14,13 @@ from dataclasses import asdict, dataclass, field
 from enum import Enum
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from hmcore.alignment import align
 from hmcore.case import Case
 from hmcore.deck import prepare_run_deck
-from hmcore.errors import SimulationError
+from hmcore.errors import FailureKind, SimulationError
 from hmcore.metrics import compute_metrics
 from hmcore.misfit import category_ranges, misfit
 from hmcore.physics import check_physics, check_responses
@@ -61,6 +62,7 @@ class Evaluation:
     heldout_metrics: dict = field(default_factory=dict)
     responses: pd.DataFrame | None = field(default=None, repr=False)
     violation_kinds: tuple[str, ...] = ()  # hmcore.physics.Check values, one per violation
+    failure: FailureKind | None = None      # why a FAIL gave no result (None otherwise)
 
     @property
     def selectable(self) -> bool:
@@ -80,7 +82,8 @@ class Evaluation:
                    record.get("reason", ""), tuple(record.get("violations") or ()),
                    num("E_heldout"), dict(record.get("metrics") or {}),
                    dict(record.get("heldout_metrics") or {}),
-                   violation_kinds=tuple(record.get("violation_kinds") or ()))
+                   violation_kinds=tuple(record.get("violation_kinds") or ()),
+                   failure=_failure_of(record))
 
     def to_record(self) -> dict:
         """Flat JSON-friendly record (no responses table)."""
@@ -89,7 +92,19 @@ class Evaluation:
         rec["status"] = self.status.value
         rec["violations"] = list(self.violations)
         rec["violation_kinds"] = list(self.violation_kinds)
+        rec["failure"] = self.failure.value if self.failure is not None else None
         return rec
+
+
+def _failure_of(record: dict) -> FailureKind | None:
+    """A record's failure kind; records journaled before kinds were stored carry it as the
+    first word of their reason."""
+    if record.get("failure"):
+        return FailureKind(record["failure"])
+    if record.get("status") != Status.FAIL.value:
+        return None
+    head = str(record.get("reason", "")).split(":")[0].strip()
+    return FailureKind(head) if head in {k.value for k in FailureKind} else FailureKind.CRASH
 
 
 def score_responses(case: Case, responses: pd.DataFrame) -> dict:
@@ -121,32 +136,44 @@ def evaluate(case: Case, values: dict[str, float], run_dir: Path,
     phys = check_physics(values, case.space, case.info, case.physics)
     fail_reward = -case.physics.failure_penalty - phys.penalty
 
-    def failed(reason: str, sim_time: float = 0.0) -> Evaluation:
+    def failed(kind: FailureKind, message: str, sim_time: float = 0.0) -> Evaluation:
         return Evaluation(dict(values), Status.FAIL, float("nan"),
                           case.physics.failure_penalty + phys.penalty, fail_reward,
                           wall_time_s=time.perf_counter() - start, sim_time_s=sim_time,
-                          run_dir=str(run_dir), reason=reason, violations=phys.violations,
-                          violation_kinds=phys.kinds)
+                          run_dir=str(run_dir), reason=f"{kind.value}: {message}",
+                          violations=phys.violations, violation_kinds=phys.kinds,
+                          failure=kind)
 
     if not phys.runnable:
-        return failed("physically impossible, not simulated: " + "; ".join(phys.violations))
+        return failed(FailureKind.NOT_RUNNABLE, "physically impossible, not simulated: "
+                      + "; ".join(phys.violations))
     deck = prepare_run_deck(case.deck, values, case.space, Path(run_dir), case.info)
     sim_start = time.perf_counter()
     try:
         result = simulator.run(deck, Path(run_dir))
     except SimulationError as exc:
         tail = exc.log_tail.strip().splitlines()[-1:] if exc.log_tail else []
-        return failed(f"{exc.reason}: {exc.message}" + (f" | {tail[0]}" if tail else ""),
+        return failed(FailureKind(exc.reason), exc.message + (f" | {tail[0]}" if tail else ""),
                       time.perf_counter() - sim_start)
-    end = last_time(result.summary_path)
-    if end < case.info.end_days - 1e-3:
-        return failed(f"no_convergence: stopped at day {end} of {case.info.end_days}",
+    try:  # a summary the simulator left garbled, empty or half-written is a failed call
+        end = last_time(result.summary_path)
+        responses = read_responses(result.summary_path, sorted(case.info.wells))
+    except Exception as exc:  # opm.io raises RuntimeError, ValueError, IndexError...
+        return failed(FailureKind.UNREADABLE_OUTPUT, f"cannot read {result.summary_path.name}: "
+                      f"{type(exc).__name__}: {' '.join(str(exc).split())[:200]}",
                       result.wall_time_s)
-    responses = read_responses(result.summary_path, sorted(case.info.wells))
+    if end < case.info.end_days - 1e-3:
+        return failed(FailureKind.NO_CONVERGENCE, f"stopped at day {end} of "
+                      f"{case.info.end_days}", result.wall_time_s)
+    if not responses.empty and not np.isfinite(responses["value"].to_numpy(float)).all():
+        bad = responses[~np.isfinite(responses["value"].to_numpy(float))]
+        return failed(FailureKind.INVALID_VALUES, f"{len(bad)} simulated values are not finite "
+                      f"(first: {bad.quantity.iloc[0]} of {bad.well.iloc[0]} at day "
+                      f"{bad.days.iloc[0]:g})", result.wall_time_s)
     s = score_responses(case, responses)
     if not math.isfinite(s["E"]):
-        return failed("no_match: no simulated record within the time tolerance of any "
-                      "observation", result.wall_time_s)
+        return failed(FailureKind.NO_MATCH, "no simulated record within the time tolerance of "
+                      "any observation", result.wall_time_s)
     phys = phys + check_responses(responses, case.info, case.physics)
     status = Status.COMPLETE if phys.valid else Status.INVALID
     return Evaluation(dict(values), status, s["E"], phys.penalty, -s["E"] - phys.penalty,

@@ -121,8 +121,8 @@ def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: d
                  "status_counts": counts, "best": None}
     fails = table[table["status"] == "FAIL"]
     if not fails.empty:
-        reasons = fails["reason"].fillna("").str.split(":").str[0].value_counts().to_dict()
-        lines += [f"Failed calls by reason: {reasons}.", ""]
+        reasons = fails["failure"].fillna("unknown").value_counts().to_dict()
+        lines += [f"Failed calls by kind: {reasons}.", ""]
         doc["failure_reasons"] = reasons
     kinds: dict[str, int] = {}
     if "violation_kinds" in table:

@@ -211,8 +211,9 @@ def _failure_counts(t: pd.DataFrame) -> dict[str, int]:
     kinds: dict[str, int] = {}
     if not len(t):
         return kinds
-    for reason in t.loc[t.status == "FAIL", "reason"].fillna("unknown"):
-        key = f"failed: {str(reason).split(':')[0] or 'unknown'}"
+    column = "failure" if "failure" in t else "reason"
+    for kind in t.loc[t.status == "FAIL", column].fillna("unknown"):
+        key = f"failed: {str(kind).split(':')[0] or 'unknown'}"
         kinds[key] = kinds.get(key, 0) + 1
     if "violation_kinds" in t:
         for cell in t.loc[t.status == "INVALID", "violation_kinds"].fillna(""):

@@ -6,7 +6,7 @@ import pandas as pd
 
 from hmcore.misfit import PRIMARY
 
-COLUMNS = ["index", "phase", "lane", "status", "reason", "E", "penalty", "reward", "coverage",
+COLUMNS = ["index", "phase", "lane", "status", "failure", "reason", "E", "penalty", "reward", "coverage",
            "E_heldout", "wall_time_s", "sim_time_s", "run_dir", "seed", "agent", "attempts"]
 
 
@@ -17,6 +17,11 @@ def results_table(records: list[dict], parameter_names: list[str]) -> pd.DataFra
     rows = []
     for r in sorted(records, key=lambda r: r["index"]):
         row = {c: r.get(c) for c in COLUMNS}
+        if row["status"] == "FAIL" and not row["failure"]:  # journaled before kinds were stored
+            from hmcore.evaluation import Evaluation
+
+            failure = Evaluation.from_record({**r, "params": r.get("params") or {}}).failure
+            row["failure"] = failure.value if failure is not None else None
         for k, name in enumerate(parameter_names):
             row[f"p_{name}"] = (r.get("params") or {}).get(name)
             action = r.get("action") or []
@@ -30,7 +35,8 @@ def results_table(records: list[dict], parameter_names: list[str]) -> pd.DataFra
         rows.append(row)
     df = pd.DataFrame(rows)
     for col in df.columns:
-        if col not in ("phase", "status", "reason", "run_dir", "agent", "violation_kinds"):
+        if col not in ("phase", "status", "failure", "reason", "run_dir", "agent",
+                       "violation_kinds"):
             df[col] = pd.to_numeric(df[col], errors="coerce")
     df["best_E_so_far"] = running_best(df["E"], df["status"])
     return df

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from hmcore.errors import SimulationError
+from hmcore.errors import FailureKind, SimulationError
 
 LOG_TAIL_CHARS = 4000
 
@@ -114,7 +114,7 @@ def _kill_group(proc: subprocess.Popen, after_exit: bool = False) -> None:
 
 
 def _run_process(cmd: list[str], deck: Path, run_dir: Path, timeout_s: float, backend: str,
-                 exit_reasons: dict[int, str] | None = None, cwd: Path | None = None
+                 exit_reasons: dict[int, FailureKind] | None = None, cwd: Path | None = None
                  ) -> SimulationResult:
     """Run ``cmd`` with stderr in ``simulator.log`` and stdout in ``simulator.stdout``.
 
@@ -130,23 +130,23 @@ def _run_process(cmd: list[str], deck: Path, run_dir: Path, timeout_s: float, ba
             proc = run_in_own_group(cmd, stdout=out, stderr=log, timeout_s=timeout_s,
                                     cwd=cwd or run_dir)
     except subprocess.TimeoutExpired:
-        raise SimulationError("timeout", f"no result after {timeout_s:g} s (raise timeout_s "
+        raise SimulationError(FailureKind.TIMEOUT, f"no result after {timeout_s:g} s (raise timeout_s "
                               "if the model is just slow)", run_dir,
                               _failure_log(run_dir, log_path, out_path))
     except OSError as exc:  # FileNotFoundError, PermissionError, ...
-        raise SimulationError("crash", f"cannot start {cmd[0]}: {exc.strerror or exc} (install "
+        raise SimulationError(FailureKind.CRASH, f"cannot start {cmd[0]}: {exc.strerror or exc} (install "
                               "the simulator or fix the command template)", run_dir) from exc
     wall = time.perf_counter() - start
     if proc.returncode != 0:
-        reason = ("killed" if proc.returncode < 0
-                  else (exit_reasons or {}).get(proc.returncode, "crash"))
+        reason = (FailureKind.KILLED if proc.returncode < 0
+                  else (exit_reasons or {}).get(proc.returncode, FailureKind.CRASH))
         raise SimulationError(reason, f"{backend} exited with code {proc.returncode}", run_dir,
                               _failure_log(run_dir, log_path, out_path))
     summary = run_dir / f"{deck.stem.upper()}.SMSPEC"
     if not summary.exists():
         found = sorted(run_dir.glob("*.SMSPEC"))
         if len(found) != 1:
-            raise SimulationError("no_output", f"{backend} finished but wrote no summary "
+            raise SimulationError(FailureKind.NO_OUTPUT, f"{backend} finished but wrote no summary "
                                   f"({summary.name}) to {run_dir}", run_dir,
                                   _failure_log(run_dir, log_path, out_path))
         summary = found[0]
@@ -167,7 +167,8 @@ class OpmFlow:
         deck, run_dir = Path(deck).resolve(), Path(run_dir).resolve()
         cmd = [sys.executable, "-m", "hmcore.opm_runner", deck.name, str(run_dir), *self.extra_args]
         return _run_process(cmd, deck, run_dir, self.timeout_s, self.name,
-                            {2: "parse_error", 3: "no_convergence"}, cwd=deck.parent)
+                            {2: FailureKind.PARSE_ERROR, 3: FailureKind.NO_CONVERGENCE},
+                            cwd=deck.parent)
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,19 @@ DASK_HELP = "Dask scheduler address, e.g. tcp://head-node:8786 (default: DASK_AD
 
 
 
+def _checked_campaign(value: Optional[str]) -> Optional[str]:
+    """A campaign name given on the command line: refused at once (exit 2, the rule stated)
+    when it is empty or could leave the store (``''``, ``../S``, ``a/b``)."""
+    if value is None:
+        return value
+    from storage import validate_name
+
+    try:
+        return validate_name("campaign", value)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+
+
 @app.callback()
 def _signals() -> None:
     """SIGTERM (``kill PID``, a batch system's time limit) stops hmflow as Ctrl-C does: the
@@ -102,12 +115,22 @@ def parse_sets(sets: list[str], names: list[str]) -> dict[str, float]:
             problems.append(f"--set {item!r}: expected NAME=VALUE")
             continue
         if name not in names:
-            problems.append(f"--set {item!r}: unknown parameter {name!r}; known: {names}")
+            import difflib
+
+            near = difflib.get_close_matches(name, names, n=1)
+            hint = f" (did you mean {near[0]!r}?)" if near else ""
+            problems.append(f"--set {item!r}: unknown parameter {name!r}{hint}; known: {names}")
             continue
         try:
-            values[name] = float(val)
+            value = float(val)
         except ValueError:
             problems.append(f"--set {item!r}: {val!r} is not a number")
+            continue
+        if not math.isfinite(value):
+            problems.append(f"--set {item!r}: {val!r} is not a finite number (give a value "
+                            "inside the parameter's bounds)")
+            continue
+        values[name] = value
     if problems:
         for p in problems:
             err_console.print(f"[red]x[/] {p}")
@@ -206,7 +229,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
         seed: int = typer.Option(0, "--seed"),
         storage: Path = typer.Option(Path("./hmflow-storage"), "--storage", help="Artifact store"),
-        campaign: Optional[str] = typer.Option(None, "--campaign", help="Campaign name "
+        campaign: Optional[str] = typer.Option(None, "--campaign", callback=_checked_campaign, help="Campaign name "
                                                "(default CASE-AGENT-seedS; the same name resumes)"),
         task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
         dask_address: Optional[str] = typer.Option(None, "--dask-address", help=DASK_HELP),
@@ -233,7 +256,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
             result = flow_fn(case=str(case), agent=agent, budget=budget, workers=workers,
                              seed=seed, storage=str(storage), campaign=name,
                              task_runner=task_runner, dask_address=dask_address)
-    except ValueError as exc:
+    except (ValueError, _flow_refused()) as exc:
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
     _print_report(storage, result["campaign"], result)
@@ -250,6 +273,14 @@ def _check_agent(agent: str, budget: int, workers: int) -> None:
         err_console.print(f"[red]x[/] --agent {agent}, --budget {budget}, --workers {workers}: "
                           f"{problem}")
         raise typer.Exit(2)
+
+
+def _flow_refused() -> type[Exception]:
+    """What calling a flow that refused its input (a Failed state) raises; imported when an
+    exception is being matched, so the CLI starts without Prefect."""
+    from prefect.exceptions import FailedRun
+
+    return FailedRun
 
 
 def _check_runner(kind: str) -> None:
@@ -299,7 +330,7 @@ def _print_report(storage: Path, campaign: str, result: dict | None = None) -> N
 
 @app.command()
 def report(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
-           campaign: str = typer.Option(..., "--campaign"),
+           campaign: str = typer.Option(..., "--campaign", callback=_checked_campaign),
            verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Rebuild a campaign's report from stored artifacts (zero simulator calls)."""
     prefect_environment(verbose)
@@ -319,7 +350,7 @@ def report(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
 
 @app.command()
 def tables(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
-           campaign: str = typer.Option(..., "--campaign"),
+           campaign: str = typer.Option(..., "--campaign", callback=_checked_campaign),
            call: Optional[int] = typer.Option(None, "--call", min=1, help="Call number (from 1); "
                                               "default: the archived best case"),
            markdown_out: Optional[Path] = typer.Option(None, "--markdown", help="Also write the "
@@ -416,7 +447,7 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
             result = flow_fn(case=str(case), methods=chosen, seeds=list(range(seeds)),
                              budget=budget, workers=workers, storage=str(storage), name=name,
                              task_runner=task_runner, dask_address=dask_address)
-    except ValueError as exc:
+    except (ValueError, _flow_refused()) as exc:
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
     console.print(Path(result["summary_path"]).read_text(), highlight=False, soft_wrap=True)
@@ -442,7 +473,7 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
            seed: int = typer.Option(0, "--seed", min=0),
            storage: Path = typer.Option(Path("./hmflow-storage"), "--storage",
                                         help="Artifact store (made absolute)"),
-           campaign: Optional[str] = typer.Option(None, "--campaign", help="Campaign name "
+           campaign: Optional[str] = typer.Option(None, "--campaign", callback=_checked_campaign, help="Campaign name "
                                                   "(default CASE-AGENT-seedS)"),
            no_report: bool = typer.Option(False, "--no-report", help="Skip the report-only "
                                           "deployment"),
@@ -528,11 +559,11 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
              budget: Optional[int] = typer.Option(None, "--budget", min=1, help="Cap on simulator "
                                                   "calls (default: as many as the steps need)"),
              workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
-             campaign: Optional[str] = typer.Option(None, "--campaign", help="Name the diagnosis "
+             campaign: Optional[str] = typer.Option(None, "--campaign", callback=_checked_campaign, help="Name the diagnosis "
                                                     "is stored under (default: the "
                                                     "--from-campaign, else CASE-diagnosis)"),
              from_campaign: Optional[str] = typer.Option(
-                 None, "--from-campaign", help="Start from this stored campaign's best "
+                 None, "--from-campaign", callback=_checked_campaign, help="Start from this stored campaign's best "
                  "parameters instead of calibrating the case's parameters first"),
              task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
              dask_address: Optional[str] = typer.Option(None, "--dask-address",
@@ -570,7 +601,7 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
             result = flow_fn(case=str(case), storage=str(storage), budget=budget,
                              campaign=campaign, workers=workers, calibrated=calibrated,
                              task_runner=task_runner, dask_address=dask_address)
-    except ValueError as exc:
+    except (ValueError, _flow_refused()) as exc:
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
     print_diagnosis(result, console)

@@ -18,11 +18,11 @@ from hmcore.report import to_jsonable
 from hmcore.simulator import make_simulator
 from storage import ArtifactStore, EvaluationJournal
 
-TRANSIENT_REASONS = ("timeout", "killed")  # worth retrying; crashes and parse errors are not
 
 
 class TransientSimulationError(RuntimeError):
-    """A failure worth retrying (timeout, killed): Prefect retries only this exception."""
+    """A failure worth retrying (:attr:`FailureKind.transient`: killed from outside; a lost
+    worker is rerun by the cluster itself): Prefect retries only this exception."""
 
 
 def retry_transient(task, task_run, state) -> bool:
@@ -47,14 +47,15 @@ def fresh_dir(path: Path) -> Path:
 
 def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: Path):
     """Evaluate ``values`` in ``run_dir`` (an :class:`~hmcore.evaluation.Evaluation`); a
-    transient failure (timeout, killed) raises while Prefect still has retries left.
+    transient failure (killed by a signal) raises while Prefect still has retries left; a
+    timeout is not retried (a model that is too slow is as slow the second time).
     Returns the evaluation and the attempt number."""
     from prefect.runtime import task_run
 
     simulator = make_simulator(case.simulator.backend, case.simulator.timeout_s)
     ev = evaluate(case, values, run_dir, simulator)
     attempt = int(getattr(task_run, "run_count", 1) or 1)
-    if ev.status.value == "FAIL" and ev.reason.split(":")[0] in TRANSIENT_REASONS and attempt <= 2:
+    if ev.failure is not None and ev.failure.transient and attempt <= 2:
         raise TransientSimulationError(ev.reason)
     return ev, attempt
 

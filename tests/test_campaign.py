@@ -125,9 +125,10 @@ def test_rerun_resumes_and_extends_without_resimulating(campaign):
 def test_same_name_with_other_settings_is_refused(campaign):
     from flows.campaign import campaign_flow
 
-    with pytest.raises(ValueError, match="other settings"):
-        campaign_flow(case=str(campaign["case"]), agent="random", budget=2, workers=2, seed=6,
-                      storage=str(campaign["storage"]), campaign=campaign["name"])
+    state = campaign_flow(case=str(campaign["case"]), agent="random", budget=2, workers=2,
+                          seed=6, storage=str(campaign["storage"]), campaign=campaign["name"],
+                          return_state=True)
+    assert state.is_failed() and "other settings {'seed': (5, 6)}" in state.message
 
 
 def test_tables_command_prints_the_papers_three_tables_from_storage(campaign, tmp_path,

@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 
 from conftest import PUNQ_DECK, TRUTH_VALUES, copy_punq_deck
 from hmcore.deck import prepare_run_deck
-from hmcore.errors import SimulationError
+from hmcore.errors import FailureKind, SimulationError
 from hmcore.evaluation import Status, evaluate, score_responses
 from hmcore.parameters import ParameterSpace
 from hmcore.responses import QUANTITIES, last_time, read_responses
@@ -264,7 +264,8 @@ def test_evaluate_physically_impossible_values_are_not_simulated(punq_case, tmp_
     sim = FakeSimulator(error=SimulationError("crash", "must not be called"))
     ev = evaluate(punq_case, {**TRUTH_VALUES, "poro_mult": 0.0}, tmp_path / "run", sim)
     assert sim.calls == []
-    assert ev.status is Status.FAIL and ev.reason.startswith("physically impossible")
+    assert ev.status is Status.FAIL and ev.reason.startswith("not_runnable: physically impossible")
+    assert ev.failure is FailureKind.NOT_RUNNABLE
     assert ev.penalty > punq_case.physics.failure_penalty
     assert ev.reward == -ev.penalty
 
