@@ -19,7 +19,7 @@ from flows.labels import Progress, campaign_run_name, tag_flow_run
 from storage import ArtifactStore, EvaluationJournal
 from flows.refuse import USER_ERRORS, input_problems, refused
 from hmcore.case import load_case
-from tasks.case import prepare_deck
+from tasks.case import deck_file_hashes, prepare_deck
 from tasks.curves import collect_curves
 from tasks.reference import reference_name, reference_settings, run_references
 from tasks.results import archive_best, consolidate, report
@@ -43,8 +43,15 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
     path = Path(store_root) / campaign / "campaign.json"
     if path.exists():
         before = {**SETTINGS_BEFORE_THEY_WERE_STORED, **json.loads(path.read_text())}
+        files = _changed_files(before.get("deck_files"), settings.get("deck_files"))
+        if files:
+            raise ValueError(f"campaign '{campaign}' in {store_root} was started on another "
+                             f"model: {files}; resuming would mix two models. Restore the "
+                             "file(s), or start a new campaign on the changed model with "
+                             "another --campaign name")
         diff = {k: (before.get(k), v) for k, v in settings.items()
-                if k in before and _comparable(k, before[k]) != _comparable(k, v)}
+                if k in before and k != "deck_files"
+                and _comparable(k, before[k]) != _comparable(k, v)}
         if diff:
             raise ValueError(f"campaign '{campaign}' in {store_root} was started with other "
                              f"settings {diff} (stored, given); choose another --campaign name")
@@ -59,6 +66,17 @@ SETTINGS_BEFORE_THEY_WERE_STORED = {"scoring_version": 1, "method_version": 1}
 """What a campaign.json written before a setting was stored means by its absence: scored by
 the first rules. A setting stored neither then nor now (``workers`` in older campaigns) is
 not compared."""
+
+
+def _changed_files(before: dict | None, now: dict | None) -> str:
+    """Which deck files differ between the stored and the given hashes ('' when none, or when
+    the campaign was started before the files were stored)."""
+    if not before or now is None:
+        return ""
+    changed = [f"{p} changed" for p in sorted(before) if p in now and now[p] != before[p]]
+    changed += [f"{p} is no longer read" for p in sorted(set(before) - set(now))]
+    changed += [f"{p} is read now" for p in sorted(set(now) - set(before))]
+    return "; ".join(changed)
 
 
 def _comparable(key: str, value):
@@ -119,7 +137,7 @@ def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
             "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
             "agent_settings": agent_settings or {}, "workers": workers,
             "scoring_version": SCORING_VERSION, "method_version": method_version(agent),
-            "reference": reference})
+            "reference": reference, "deck_files": deck_file_hashes(loaded)})
         check_campaign_settings(storage, reference, reference_settings(case_version))
     except ValueError as exc:
         return refused(exc)

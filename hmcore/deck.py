@@ -21,6 +21,7 @@ from pathlib import Path
 
 from hmcore.deck_info import SECTION_NAMES as SECTIONS
 from hmcore.deck_info import DeckInfo
+from hmcore.includes import resolve_include
 from hmcore.eclipse_lexer import (Block, expand_repeats, include_target, records, split_blocks,
                                   tokenize)
 from hmcore.errors import CaseError, Problem
@@ -213,16 +214,6 @@ def _multiply_block(mults: list[Multiply]) -> str:
     return f"-- parameter multipliers added by hmflow\nMULTIPLY\n{body}/\n\n"
 
 
-def _resolve_include(target: str, including_file: Path, main_dir: Path) -> Path:
-    path = Path(target)
-    if path.is_absolute():
-        return path
-    for base in (main_dir, including_file.parent):
-        if (base / path).exists():
-            return (base / path).resolve()
-    return (main_dir / path).resolve()
-
-
 def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[SetSkin],
                  state: dict) -> str:
     """Text of ``file`` with edits applied; includes that need edits are inlined."""
@@ -238,7 +229,7 @@ def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[
             state["section"] = block.keyword
         if block.keyword == "INCLUDE":
             target = include_target(block)
-            path = _resolve_include(target or "", file, info.path.parent)
+            path = resolve_include(target or "", file, info.path.parent)
             if _needs_inlining(path, info, skins, state):
                 out.append(f"-- inlined by hmflow from {path}\n")
                 out.append(_render_file(path, info, mults, skins, state))

@@ -20,13 +20,25 @@ def file_sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def deck_file_hashes(case: Case) -> dict[str, str]:
+    """SHA-256 of every file the deck reads (the main file and its INCLUDEs, recursively,
+    wherever they are); other files beside the deck do not count. Keyed by the path relative
+    to the deck's folder (so the case folder can move), absolute for a file outside it."""
+    from hmcore.includes import deck_files
+
+    home = Path(case.deck).resolve().parent
+
+    def key(p: Path) -> str:
+        return str(p.relative_to(home)) if p.is_relative_to(home) else str(p)
+
+    return {key(p): file_sha256(p) for p in deck_files(case.deck)}
+
+
 def case_fingerprint(case: Case) -> dict:
-    """What identifies a case's inputs: hashes of the case file, deck, includes and history."""
-    includes = sorted({str(p) for p in Path(case.deck).parent.glob("*") if p.is_file()
-                       and p.suffix.upper() not in (".CSV", ".TOML", ".JSON")})
+    """What identifies a case's inputs: hashes of the case file, every file the deck reads,
+    and the history."""
     return {"case_file": file_sha256(case.source), "deck": file_sha256(case.deck),
-            "deck_dir_files": {Path(p).name: file_sha256(Path(p)) for p in includes},
-            "observed": file_sha256(case.observed_path)}
+            "deck_files": deck_file_hashes(case), "observed": file_sha256(case.observed_path)}
 
 
 def fingerprint_differences(version: ArtifactVersion, case: Case) -> list[str]:

@@ -1,0 +1,60 @@
+"""The case fingerprint covers every file the deck reads, wherever it lives: editing an
+INCLUDE file outside the deck's folder and resuming is refused with the file named; an
+unrelated new file beside the deck does not block the resume (real Prefect flow; a fake
+evaluator stands in for nothing: the campaign is refused before any simulation)."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+
+def _case_with_outside_include(tmp_path):
+    from hmcore.case import resolve_case_path
+
+    src = resolve_case_path("synthetic").parent
+    case_dir, shared = tmp_path / "case", tmp_path / "shared"
+    case_dir.mkdir()
+    shared.mkdir()
+    deck = (src / "SYNTH.DATA").read_text()
+    # move the PVTW keyword's record into an include file in another folder
+    start = deck.index("\nPVTW\n") + 1
+    end = deck.index(" /\n", start) + 2
+    (shared / "pvtw.inc").write_text(deck[start:end] + "\n")
+    (case_dir / "SYNTH.DATA").write_text(deck[:start] + f"INCLUDE\n '{shared / 'pvtw.inc'}' /\n"
+                                         + deck[end:])
+    shutil.copy(src / "observed.csv", case_dir / "observed.csv")
+    shutil.copy(src / "case.toml", case_dir / "case.toml")
+    return case_dir / "case.toml", shared / "pvtw.inc"
+
+
+def test_deck_files_follow_includes_outside_the_folder_and_ignore_the_rest(tmp_path):
+    from hmcore.case import load_case
+    from tasks.case import deck_file_hashes
+
+    case_file, inc = _case_with_outside_include(tmp_path)
+    (case_file.parent / "notes.txt").write_text("unrelated")
+    files = deck_file_hashes(load_case(case_file))
+    assert set(files) == {"SYNTH.DATA", str(inc)}
+
+
+@pytest.mark.opm
+def test_resume_on_a_changed_include_is_refused_with_the_file_named(tmp_path):
+    from flows.campaign import campaign_flow
+
+    case_file, inc = _case_with_outside_include(tmp_path)
+    store = tmp_path / "store"
+    first = campaign_flow(case=str(case_file), agent="random", budget=1, workers=1,
+                          storage=str(store), campaign="inc", return_state=True)
+    assert first.is_completed(), first.message
+    (case_file.parent / "notes.txt").write_text("unrelated")  # does not block a resume
+    again = campaign_flow(case=str(case_file), agent="random", budget=2, workers=1,
+                          storage=str(store), campaign="inc", return_state=True)
+    assert again.is_completed(), again.message
+    inc.write_text(inc.read_text().replace("PVTW", "PVTW\n-- edited", 1))
+    runs = sorted((store / "inc" / "runs").iterdir())
+    refused = campaign_flow(case=str(case_file), agent="random", budget=3, workers=1,
+                            storage=str(store), campaign="inc", return_state=True)
+    assert refused.is_failed() and f"{inc} changed" in refused.message, refused.message
+    assert sorted((store / "inc" / "runs").iterdir()) == runs  # nothing simulated
