@@ -236,12 +236,14 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Run a calibration campaign as a Prefect flow and print the best case and the tables."""
     prefect_environment(verbose)
-    from flows.campaign import campaign_flow, default_campaign_name
     from storage import ArtifactStore, EvaluationJournal
 
     c = _load(case)  # clear errors before any simulator time or Prefect start-up
     _check_agent(agent, budget, workers)
     _check_runner(task_runner)
+    _start_api()
+    from flows.campaign import campaign_flow, default_campaign_name
+
     name = campaign or default_campaign_name(c.name, agent, seed)
     storage = storage.resolve()
     console.print(f"campaign [bold]{name}[/]: case {c.name}, agent {agent}, budget {budget}, "
@@ -273,6 +275,19 @@ def _check_agent(agent: str, budget: int, workers: int) -> None:
         err_console.print(f"[red]x[/] --agent {agent}, --budget {budget}, --workers {workers}: "
                           f"{problem}")
         raise typer.Exit(2)
+
+
+def _start_api() -> None:
+    """The command's Prefect API: the configured server, or a temporary one that dies with
+    hmflow (:mod:`hmflow.server`), stopped when the command ends. Call it after the input is
+    checked and before Prefect is imported (Prefect reads its settings once, on import)."""
+    import atexit
+
+    from hmflow.server import temporary_api
+
+    api = temporary_api()
+    api.__enter__()  # stopped when the command's process exits (killed with it if it dies)
+    atexit.register(api.__exit__, None, None, None)
 
 
 def _flow_refused() -> type[Exception]:
@@ -334,12 +349,13 @@ def report(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
            verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Rebuild a campaign's report from stored artifacts (zero simulator calls)."""
     prefect_environment(verbose)
-    from flows.report import report_flow
-
     if not (storage / campaign).is_dir():
         err_console.print(f"[red]x[/] no campaign '{campaign}' in {storage}; known: "
                           f"{sorted(p.name for p in storage.iterdir()) if storage.is_dir() else []}")
         raise typer.Exit(2)
+    _start_api()
+    from flows.report import report_flow
+
     try:
         report_flow(storage=str(storage), campaign=campaign)
     except FileNotFoundError as exc:
@@ -423,8 +439,6 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     """Equal-budget benchmark: every method x seed is an ordinary campaign (a stopped benchmark
     resumes where it was), then one table, Parquet files and a best-so-far plot."""
     prefect_environment(verbose)
-    from flows.bench import bench_flow, bench_names
-
     c = _load(case)
     chosen = list(AGENTS) if methods == "all" else [m.strip() for m in methods.split(",")
                                                     if m.strip()]
@@ -436,6 +450,9 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     for m in chosen:
         _check_agent(m, budget, workers)
     _check_runner(task_runner)
+    _start_api()
+    from flows.bench import bench_flow, bench_names
+
     storage = storage.resolve()
     console.print(f"benchmark on case {c.name}: {len(chosen)} methods x {seeds} seeds x {budget} "
                   f"calls, {workers} workers, storage {storage}")
@@ -573,6 +590,9 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
     gain on the fitted and the held-back history; writes diagnosis.json (path printed)."""
     prefect_environment(verbose)
     _check_runner(task_runner)
+    if case:
+        _load(case)  # clear errors before Prefect starts
+    _start_api()
     from flows.diagnose import (campaign_start, default_campaign_name, diagnose_flow,
                                 print_diagnosis)
 
@@ -580,8 +600,6 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
     if from_campaign:
         from storage import ArtifactStore
 
-        if case:
-            _load(case)
         try:
             case, calibrated = campaign_start(ArtifactStore(storage.resolve()), from_campaign,
                                               case)

@@ -15,7 +15,8 @@ import pytest
 
 
 def _alive(pgid: int) -> list[str]:
-    out = subprocess.run(["ps", "-eo", "pid=,pgid=,args="], capture_output=True, text=True).stdout
+    out = subprocess.run(["ps", "-eww", "-o", "pid=,pgid=,args="], capture_output=True,
+                         text=True).stdout
     return [line for line in out.splitlines() if int(line.split()[1]) == pgid]
 
 
@@ -45,3 +46,33 @@ def test_sigterm_stops_the_campaign_and_its_temporary_server(tmp_path):
     assert f"resuming campaign term: {len(done)} calls already journaled" in rerun.stdout
     rows = [json.loads(p.read_text()) for p in sorted(journal.glob("*.json"))]
     assert [r["index"] for r in rows] == list(range(len(done) + 2))
+
+
+@pytest.mark.opm
+def test_kill_9_of_hmflow_leaves_no_server_and_no_simulator(tmp_path):
+    """SIGKILL cannot be caught: what hmflow started must die with it by itself (the
+    temporary Prefect server and the simulators are killed by the kernel, PR_SET_PDEATHSIG),
+    and the campaign resumes from its journal."""
+    store = tmp_path / "store"
+    args = [sys.executable, "-m", "hmflow.cli", "run", "--agent", "random", "--budget", "40",
+            "--workers", "2", "--campaign", "k9", "--storage", str(store)]
+    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    journal = store / "k9" / "evaluations"
+    deadline = time.time() + 300
+    while time.time() < deadline and len(list(journal.glob("*.json"))) < 2:
+        time.sleep(0.5)
+    before = _alive(proc.pid)
+    assert any("prefect.server.api.server:create_app" in line for line in before), before
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    deadline = time.time() + 20
+    while time.time() < deadline and _alive(proc.pid):
+        time.sleep(0.5)
+    assert not _alive(proc.pid), _alive(proc.pid)
+    done = len(list(journal.glob("*.json")))
+    rerun = subprocess.run(args[:-6] + ["--budget", str(done + 1), "--campaign", "k9",
+                                        "--storage", str(store)],
+                           cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert rerun.returncode == 0, rerun.stdout[-3000:] + rerun.stderr[-3000:]
+    assert sorted(int(p.stem) for p in journal.glob("*.json")) == list(range(done + 1))

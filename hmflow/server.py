@@ -1,0 +1,89 @@
+"""The temporary Prefect server of a command run without ``PREFECT_API_URL``, as a child that
+cannot outlive hmflow.
+
+Prefect starts its own temporary server when no API is configured; that process survived a
+``kill -9`` of hmflow (6 of 6 tries) and held its port and SQLite file. hmflow starts the same
+server itself (Prefect's own uvicorn command and settings), with Linux's
+``PR_SET_PDEATHSIG``: the kernel kills it the moment hmflow dies, however it dies. It points
+``PREFECT_API_URL`` at it for the command and stops it when the command ends. A user who
+configured a server (``PREFECT_API_URL``) gets that one, untouched.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+STARTUP_TIMEOUT_S = 90.0
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+@contextlib.contextmanager
+def temporary_api() -> Iterator[str | None]:
+    """Yield the API URL the command uses: the configured one (nothing started), or a
+    temporary server's, started here and stopped on exit (killed with hmflow if it dies)."""
+    if os.environ.get("PREFECT_API_URL") or sys.platform != "linux":
+        yield os.environ.get("PREFECT_API_URL")  # elsewhere: Prefect's own temporary server
+        return
+    import importlib.util
+
+    import httpx
+
+    # Prefect's own command, without importing Prefect (it reads its settings once, on import)
+    app_dir = Path(importlib.util.find_spec("prefect").origin).parent.parent
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}/api"
+    env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
+           "PREFECT__SERVER_FINAL": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "uvicorn", "--app-dir", str(app_dir),
+         "--factory", "prefect.server.api.server:create_app", "--host", "127.0.0.1",
+         "--port", str(port), "--log-level", "error", "--lifespan", "on"],
+        env=env, preexec_fn=_die_with_parent)
+    try:
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while True:
+            if proc.poll() is not None:
+                raise RuntimeError(f"the temporary Prefect server exited with code "
+                                   f"{proc.returncode} while starting (port {port})")
+            try:
+                if httpx.get(f"{url}/health", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the temporary Prefect server did not answer on {url} "
+                                   f"within {STARTUP_TIMEOUT_S:g} s")
+            time.sleep(0.2)
+        os.environ["PREFECT_API_URL"] = url
+        yield url
+    finally:
+        if os.environ.get("PREFECT_API_URL") == url:
+            del os.environ["PREFECT_API_URL"]
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
