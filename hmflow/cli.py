@@ -281,13 +281,38 @@ def _start_api() -> None:
     """The command's Prefect API: the configured server, or a temporary one that dies with
     hmflow (:mod:`hmflow.server`), stopped when the command ends. Call it after the input is
     checked and before Prefect is imported (Prefect reads its settings once, on import)."""
-    import atexit
-
     from hmflow.server import temporary_api
 
     api = temporary_api()
-    api.__enter__()  # stopped when the command's process exits (killed with it if it dies)
-    atexit.register(api.__exit__, None, None, None)
+    api.__enter__()  # (killed with hmflow if it dies)
+    def stop() -> None:
+        try:  # the run's last log lines reach the server before it stops
+            from prefect.logging.handlers import APILogWorker
+
+            APILogWorker.drain_all(timeout=5)
+        except Exception:  # nothing to send, or Prefect never imported
+            pass
+        api.__exit__(None, None, None)
+    ctx = _command_context()
+    if ctx is not None:  # stopped when the command ends (also when it runs in-process)
+        ctx.call_on_close(stop)
+    else:
+        import atexit
+
+        atexit.register(stop)
+
+
+def _command_context():
+    """The running command's click context (Typer vendors click since 0.16), or None."""
+    for module in ("typer._click.globals", "click.globals"):
+        try:
+            get = __import__(module, fromlist=["get_current_context"]).get_current_context
+        except ImportError:
+            continue
+        ctx = get(silent=True)
+        if ctx is not None:
+            return ctx
+    return None
 
 
 def _flow_refused() -> type[Exception]:

@@ -44,6 +44,7 @@ def test_sigterm_stops_the_campaign_and_its_temporary_server(tmp_path):
                            cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert rerun.returncode == 0, rerun.stdout[-3000:] + rerun.stderr[-3000:]
     assert f"resuming campaign term: {len(done)} calls already journaled" in rerun.stdout
+    assert "Error logging to API" not in rerun.stdout + rerun.stderr  # logs sent before it stops
     rows = [json.loads(p.read_text()) for p in sorted(journal.glob("*.json"))]
     assert [r["index"] for r in rows] == list(range(len(done) + 2))
 
@@ -56,14 +57,17 @@ def test_kill_9_of_hmflow_leaves_no_server_and_no_simulator(tmp_path):
     store = tmp_path / "store"
     args = [sys.executable, "-m", "hmflow.cli", "run", "--agent", "random", "--budget", "40",
             "--workers", "2", "--campaign", "k9", "--storage", str(store)]
-    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+    log = tmp_path / "hmflow.log"
+    proc = subprocess.Popen(args, cwd=tmp_path, stdout=log.open("w"), stderr=subprocess.STDOUT,
+                            start_new_session=True)
     journal = store / "k9" / "evaluations"
     deadline = time.time() + 300
     while time.time() < deadline and len(list(journal.glob("*.json"))) < 2:
         time.sleep(0.5)
+    assert len(list(journal.glob("*.json"))) >= 2, log.read_text()[-3000:]
     before = _alive(proc.pid)
-    assert any("prefect.server.api.server:create_app" in line for line in before), before
+    assert any("prefect.server.api.server:create_app" in line for line in before), (
+        before, log.read_text()[-3000:], os.environ.get("PREFECT_API_URL"))
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(timeout=30)
     deadline = time.time() + 20
