@@ -78,9 +78,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     from hmcore.case import load_case
     from hmcore.deck import prepare_run_deck
-    from hmcore.evaluation import evaluate, score_responses
+    from hmcore.evaluation import evaluate, score_responses, simulator_for
     from hmcore.responses import read_responses
-    from hmcore.simulator import make_simulator
 
     work = args.workdir or Path(tempfile.mkdtemp(prefix="hmflow-bench-eval-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -89,7 +88,7 @@ def main(argv: list[str] | None = None) -> dict:
     case = load_case(case_path)
     load_s = time.perf_counter() - t
     values = parse_values(args.sets, case.space)
-    sim = make_simulator(case.simulator.backend, case.simulator.timeout_s)
+    sim = simulator_for(case)
     wells = sorted(case.info.wells)
 
     rows = []

@@ -48,7 +48,8 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
             raise ValueError(f"campaign '{campaign}' in {store_root} was started on another "
                              f"model: {files}; resuming would mix two models. Restore the "
                              "file(s), or start a new campaign on the changed model with "
-                             "another --campaign name")
+                             f"--campaign {campaign} --fork NEW (it records where it comes "
+                             "from; this campaign is left as it is)")
         diff = {k: (before.get(k), v) for k, v in settings.items()
                 if k in before and k != "deck_files"
                 and _comparable(k, before[k]) != _comparable(k, v)}
@@ -60,6 +61,20 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(settings, indent=2))
     tmp.replace(path)
+
+
+def fork_origin(store_root: str, campaign: str) -> dict:
+    """What a fork records of the campaign it comes from: its name and fingerprint (the case
+    artifact it was bound to and the hashes of every file its deck read). ValueError when
+    there is no such stored campaign."""
+    from storage import validate_name
+
+    path = Path(store_root) / validate_name("campaign", campaign) / "campaign.json"
+    if not path.is_file():
+        raise ValueError(f"cannot fork from campaign '{campaign}': it is not in {store_root}")
+    before = json.loads(path.read_text())
+    return {"campaign": campaign, "case_artifact": before.get("case_artifact"),
+            "deck_files": before.get("deck_files")}
 
 
 SETTINGS_BEFORE_THEY_WERE_STORED = {"scoring_version": 1, "method_version": 1}
@@ -96,7 +111,8 @@ def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
                   workers: Annotated[int, Field(ge=1)] = 2, seed: Annotated[int, Field(ge=0)] = 0,
                   storage: str = DEFAULT_STORAGE, campaign: str | None = None,
                   agent_settings: dict | None = None, reference: str | None = None,
-                  task_runner: Runner = "threads", dask_address: str | None = None) -> dict:
+                  task_runner: Runner = "threads", dask_address: str | None = None,
+                  forked_from: str | None = None) -> dict:
     """Calibrate ``case`` with ``budget`` simulator calls, ``workers`` at a time.
 
     Args:
@@ -118,6 +134,9 @@ def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
             process) or dask (a Dask cluster, see dask_address).
         dask_address: Scheduler of an existing Dask cluster (tcp://host:8786); default the
             DASK_ADDRESS environment variable, else a local cluster of `workers` processes.
+        forked_from: A stored campaign this new one starts from (`hmflow run --fork`): its
+            name and fingerprint (case artifact, deck file hashes) are recorded in this
+            campaign's campaign.json; it is only read, never written.
     """
     logger = get_run_logger()
     try:  # bad input from the UI or the API: one clear line, no traceback, no simulation
@@ -126,6 +145,7 @@ def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
             raise ValueError("; ".join(problems))
         storage = str(Path(storage).expanduser().resolve())
         loaded = load_case(case)
+        origin = fork_origin(storage, forked_from) if forked_from else None
     except USER_ERRORS as exc:
         return refused(exc)
     campaign = campaign or default_campaign_name(loaded.name, agent, seed)
@@ -137,7 +157,8 @@ def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
             "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
             "agent_settings": agent_settings or {}, "workers": workers,
             "scoring_version": SCORING_VERSION, "method_version": method_version(agent),
-            "reference": reference, "deck_files": deck_file_hashes(loaded)})
+            "reference": reference, "deck_files": deck_file_hashes(loaded),
+            **({"forked_from": origin} if origin else {})})
         check_campaign_settings(storage, reference, reference_settings(case_version))
     except ValueError as exc:
         return refused(exc)

@@ -9,16 +9,18 @@ artifacts are stored as versioned artifacts of the campaign (steps ``diagnosis-c
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import itertools
 import tempfile
 import threading
 from pathlib import Path
-from typing import Any, Optional
+from typing import Annotated, Any, Optional
 
 from prefect import flow, get_run_logger
+from pydantic import Field
 
-from hmcore.diagnosis import Diagnosis, DiagnosisSettings
+from hmcore.diagnosis import Diagnosis, DiagnosisSettings, budget_problem, parse_kinds
 from storage import sha256_json
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
@@ -87,20 +89,35 @@ def _safe(name: str) -> str:
 
 @flow(name="hmflow-diagnose", log_prints=True)
 def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
-                  budget: int | None = None, campaign: str | None = None, workers: int = 2,
+                  budget: Annotated[int, Field(ge=1)] | None = None,
+                  campaign: str | None = None, workers: Annotated[int, Field(ge=1)] = 2,
                   calibrated: dict[str, float] | None = None,
                   initial: dict[str, float] | None = None,
                   settings: dict[str, Any] | None = None, task_runner: Runner = "threads",
-                  dask_address: str | None = None) -> dict:
+                  dask_address: str | None = None, kinds: list[str] | None = None) -> dict:
     """Diagnose ``case``: what does the calibrated model get wrong, and what fixes it?
 
-    ``budget`` caps the simulator calls (None: as many as the steps need, about
-    40 + the number of candidate extensions); ``calibrated`` skips the calibration of the
-    case's own parameters (e.g. a campaign's best), ``initial`` starts it elsewhere than at
-    the base model; ``settings`` overrides :class:`DiagnosisSettings` fields (thresholds,
-    kinds, confirm_top); ``task_runner`` and ``dask_address`` say where the simulations run
-    (see :mod:`flows.runners`; ``workers`` at once). Returns the campaign, the ranked
-    causes, the selected extension, the gain and ``diagnosis_path`` (the stored ``diagnosis.json``).
+    Args:
+        case: Case TOML file (an absolute path on the worker) or the built-in 'synthetic'.
+        storage: Artifact store directory.
+        budget: Cap on simulator calls, every one counted (None: as many as the steps need,
+            about 40 + the number of candidate extensions); one that cannot cover the
+            calibrated model and the ranking is refused before any simulation.
+        campaign: Name the diagnosis is stored under (default CASE-diagnosis).
+        workers: Simulations at once (the task runner's and the recalibration batches').
+        calibrated: Skip the calibration of the case's own parameters (e.g. a campaign's
+            best) and start from these values.
+        initial: Start the calibration here instead of at the base model.
+        settings: Overrides of :class:`DiagnosisSettings` fields (thresholds, kinds,
+            confirm_top).
+        task_runner: Where the simulations run: threads or dask (see :mod:`flows.runners`).
+        dask_address: Scheduler of an existing Dask cluster (default DASK_ADDRESS, else a
+            local cluster of `workers` processes).
+        kinds: Families of candidate extensions to search (default all; see
+            :data:`hmcore.diagnosis.KINDS`).
+
+    Returns the campaign, the ranked causes, the selected extension, the gain,
+    ``diagnosis_path`` (the stored ``diagnosis.json``) and the simulations made.
     """
     logger = get_run_logger()
     storage = str(Path(storage).expanduser().resolve())
@@ -109,6 +126,17 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
         if problems:
             raise ValueError("; ".join(problems))
         loaded = load_case(case)
+        opts = dict(settings or {})
+        unknown = sorted(set(opts) - {f.name for f in dataclasses.fields(DiagnosisSettings)})
+        if unknown:
+            raise ValueError(f"settings: unknown field(s) {unknown} (fix: use fields of "
+                             "hmcore.diagnosis.DiagnosisSettings)")
+        if kinds is not None:
+            opts["kinds"] = parse_kinds(kinds, "kinds")
+        diagnosis_settings = DiagnosisSettings(**{**opts, "budget": budget, "workers": workers})
+        problem = budget_problem(loaded, diagnosis_settings, calibrated is not None, "budget")
+        if problem:
+            raise ValueError(str(problem))
     except USER_ERRORS as exc:
         return refused(exc)
     campaign = campaign or default_campaign_name(loaded.name)
@@ -124,11 +152,7 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
                    for v, d in zip(values_list, dirs)]
         return [f.result() for f in futures]
 
-    opts = dict(settings or {})
-    if "kinds" in opts:
-        opts["kinds"] = tuple(opts["kinds"])
-    d = Diagnosis(loaded, evaluate_batch, DiagnosisSettings(budget=budget, **opts),
-                  log=logger.info)
+    d = Diagnosis(loaded, evaluate_batch, diagnosis_settings, log=logger.info)
     previous: dict[str, Any] = {"case": case_version.ref()}
     versions = {}
 
@@ -222,10 +246,13 @@ def print_diagnosis(result: dict, console=None, most: int = 8) -> None:
 def diagnose_command(case: str = "synthetic", storage: Path = Path(DEFAULT_STORAGE),
                      budget: Optional[int] = None, workers: int = 2,
                      campaign: Optional[str] = None,
-                     calibrated: Optional[dict[str, float]] = None, console=None) -> dict:
+                     calibrated: Optional[dict[str, float]] = None, console=None,
+                     task_runner: Runner = "threads", dask_address: Optional[str] = None,
+                     kinds: Optional[list[str]] = None) -> dict:
     """``hmflow diagnose``: run the flow with ``workers`` simulations at a time and print the
     ranked causes, the gain and the path of diagnosis.json. Returns the flow's result."""
     result = diagnose_flow(case=str(case), storage=str(Path(storage).resolve()), budget=budget,
-                     campaign=campaign, workers=workers, calibrated=calibrated)
+                           campaign=campaign, workers=workers, calibrated=calibrated,
+                           task_runner=task_runner, dask_address=dask_address, kinds=kinds)
     print_diagnosis(result, console)
     return result

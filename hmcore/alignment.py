@@ -31,25 +31,38 @@ class Alignment:
         return self.n_matched / self.n_observed if self.n_observed else 0.0
 
 
-def align(observed: pd.DataFrame, simulated: pd.DataFrame, tolerance_days: float) -> Alignment:
-    """Pair each observed row with the nearest simulated row of the same well and quantity.
+@dataclass(frozen=True)
+class Nearest:
+    """Per observed row (in the observed frame's order): whether a simulated record of the
+    same well and quantity lies within the tolerance, and the nearest one's time and value
+    (NaN where none does)."""
 
-    ``observed``: well, quantity, days, value (+ optional sigma, flowing, derived).
-    ``simulated``: well, quantity, days, value. Both in the same units; days since START.
+    matched: np.ndarray
+    sim_days: np.ndarray
+    value: np.ndarray
+
+
+def nearest(observed: pd.DataFrame, simulated: pd.DataFrame, tolerance_days: float) -> Nearest:
+    """The nearest simulated record (same well and quantity) of each observed row.
+
+    ``observed``: well, quantity, days; ``simulated``: well, quantity, days, value. Times that
+    coincide keep the later simulated record, whatever the row order; of two records equally
+    far the earlier wins. The one nearest-time matcher of hmflow: :func:`align` pairs with it,
+    the diagnosis's residual vectors read their simulated values from it.
     """
-    if simulated.empty or observed.empty:
-        return Alignment(pd.DataFrame(columns=ALIGNED_COLUMNS), len(observed))
-    obs = observed.sort_values(["well", "quantity"], kind="stable")  # grouped, row order kept
-    # times that coincide after rounding keep the later record, whatever the row order
+    m = len(observed)
+    nan = np.full(m, np.nan)
+    if simulated is None or simulated.empty or m == 0:
+        return Nearest(np.zeros(m, bool), nan, nan.copy())
     sim = (simulated.sort_index()
            .sort_values(["well", "quantity", "days"], kind="stable")
            .drop_duplicates(["well", "quantity", "days"], keep="last"))
-    s_key, o_key = _keys(sim), _keys(obs)
+    s_key, o_key = _keys(sim), _keys(observed)
     codes, _ = pd.factorize(np.concatenate([s_key, o_key]))
     s_code, o_code = codes[: len(s_key)], codes[len(s_key):]
     t = sim["days"].to_numpy(float)
     v = sim["value"].to_numpy(float)
-    od = obs["days"].to_numpy(float)
+    od = observed["days"].to_numpy(float)
     order = np.lexsort((t, s_code))
     t, v, s_code = t[order], v[order], s_code[order]
     # one sorted axis for every (well, quantity): code * span + days, groups never overlap
@@ -63,11 +76,27 @@ def align(observed: pd.DataFrame, simulated: pd.DataFrame, tolerance_days: float
     d_right = np.where(has_right, np.abs(t[ri] - od), np.inf)
     idx = np.where(d_left <= d_right, li, ri)  # the earlier record wins a tie
     ok = np.minimum(d_left, d_right) <= tolerance_days + 1e-9
+    return Nearest(ok, np.where(ok, t[idx], np.nan), np.where(ok, v[idx], np.nan))
+
+
+def align(observed: pd.DataFrame, simulated: pd.DataFrame, tolerance_days: float) -> Alignment:
+    """Pair each observed row with the nearest simulated row of the same well and quantity
+    (:func:`nearest`).
+
+    ``observed``: well, quantity, days, value (+ optional sigma, flowing, derived).
+    ``simulated``: well, quantity, days, value. Both in the same units; days since START.
+    """
+    if simulated.empty or observed.empty:
+        return Alignment(pd.DataFrame(columns=ALIGNED_COLUMNS), len(observed))
+    obs = observed.sort_values(["well", "quantity"], kind="stable")  # grouped, row order kept
+    near = nearest(obs, simulated, tolerance_days)
+    ok = near.matched
+    od = obs["days"].to_numpy(float)
     m = len(od)
     pairs = pd.DataFrame({
         "well": obs["well"].to_numpy()[ok], "quantity": obs["quantity"].to_numpy()[ok],
-        "days": od[ok], "sim_days": t[idx][ok],
-        "observed": obs["value"].to_numpy(float)[ok], "simulated": v[idx][ok],
+        "days": od[ok], "sim_days": near.sim_days[ok],
+        "observed": obs["value"].to_numpy(float)[ok], "simulated": near.value[ok],
         "sigma": (obs["sigma"].to_numpy(float) if "sigma" in obs else np.full(m, np.nan))[ok],
         "flowing": (obs["flowing"].to_numpy(bool) if "flowing" in obs else np.ones(m, bool))[ok],
         "derived": (obs["derived"].to_numpy(bool) if "derived" in obs else np.zeros(m, bool))[ok],

@@ -6,6 +6,9 @@ file that must change) with
 * a ``MULTIPLY`` block inserted at the end of the GRID section, i.e. just before the next
   section keyword (``EDIT`` or ``PROPS``), so it acts after every grid property and after
   ``COPY PERMX PERMY``;
+* ``MULTIREG``, ``MULTFLT`` and ``MULTREGT`` blocks there too for region, fault and
+  between-region multipliers;
+* ``WPIMULT`` after every COMPDAT that connects a well with a productivity multiplier;
 * COMPDAT item 11 (skin) rewritten for the targeted wells (and layers);
 * every ``INCLUDE`` path made absolute (unchanged include files are not copied).
 
@@ -25,7 +28,7 @@ from hmcore.includes import resolve_include
 from hmcore.eclipse_lexer import (Block, expand_repeats, include_target, records, split_blocks,
                                   tokenize)
 from hmcore.errors import CaseError, Problem
-from hmcore.parameters import Parameter, ParameterSpace
+from hmcore.parameters import MULTIREG_REGIONS, Parameter, ParameterSpace
 
 _COMPDAT_SKIN_ITEM = 11
 
@@ -38,6 +41,13 @@ class Multiply:
     keyword: str
     factor: float
     box: tuple[int, int, int, int, int, int] | None = None
+    region: tuple[str, tuple[int, ...]] | None = None  # (MULTNUM/FLUXNUM/OPERNUM, numbers)
+
+    def region_records(self) -> str:
+        """MULTIREG records: one per region number."""
+        keyword, numbers = self.region
+        flag = MULTIREG_REGIONS[keyword.upper()]
+        return "".join(f" '{self.keyword}' {self.factor:.10g} {n} '{flag}' /\n" for n in numbers)
 
     def record(self) -> str:
         box = " ".join(str(b) for b in self.box) if self.box else ""
@@ -64,6 +74,41 @@ class ItemMultiply:
 
 
 @dataclass(frozen=True)
+class RegionTransmissibility:
+    """Multiply the transmissibility between two regions (``MULTREGT``, every direction)."""
+
+    regions: tuple[int, int]
+    factor: float
+    region: str = "MULTNUM"
+
+    def record(self) -> str:
+        r1, r2 = self.regions
+        return (f" {r1} {r2} {self.factor:.10g} 'XYZ' 'ALL' "
+                f"'{MULTIREG_REGIONS[self.region.upper()]}' /\n")
+
+
+@dataclass(frozen=True)
+class FaultMultiplier:
+    """Set the transmissibility multiplier of the named faults (``MULTFLT`` at the end of
+    GRID; OPM and Eclipse take the last value given for a fault, replacing the deck's own)."""
+
+    faults: tuple[str, ...]
+    factor: float
+
+    def records(self) -> str:
+        return "".join(f" '{f}' {self.factor:.10g} /\n" for f in self.faults)
+
+
+@dataclass(frozen=True)
+class PiMultiplier:
+    """Multiply the productivity (injectivity) index of ``wells``' connections: a ``WPIMULT``
+    record after every COMPDAT that (re)defines their connections."""
+
+    wells: tuple[str, ...]
+    factor: float
+
+
+@dataclass(frozen=True)
 class TableTransform:
     """Scale (``mode="scale"``) or reshape (``mode="power"``) column ``column`` of tables."""
 
@@ -73,7 +118,9 @@ class TableTransform:
     value: float
 
 
-Edit = Multiply | SetSkin | ItemMultiply | TableTransform
+Edit = (Multiply | SetSkin | ItemMultiply | TableTransform | FaultMultiplier
+        | RegionTransmissibility | PiMultiplier)
+GRID_END = (Multiply, FaultMultiplier, RegionTransmissibility)  # written at the end of GRID
 TABLE_COLUMNS = {"SWOF": 4, "SGOF": 4, "SLGOF": 4, "SWFN": 3, "SGFN": 3, "SOF3": 3, "SOF2": 2}
 
 
@@ -91,11 +138,18 @@ def edits_for(space: ParameterSpace, values: dict[str, float], info: DeckInfo) -
 
 def _parameter_edits(p: Parameter, value: float, info: DeckInfo) -> list[Edit]:
     if p.kind == "multiply":
-        return [Multiply(k.upper(), value, p.box) for k in p.keywords]
+        region = (p.region.upper(), tuple(p.region_numbers)) if p.region else None
+        return [Multiply(k.upper(), value, p.box, region) for k in p.keywords]
+    if p.kind == "multregt":
+        return [RegionTransmissibility(tuple(p.region_numbers), value, p.region or "MULTNUM")]
     if p.kind == "item_multiply":
         return [ItemMultiply(p.keywords[0].upper(), int(p.item), value, p.match)]
     if p.kind == "relperm":
         return [TableTransform(p.keywords[0].upper(), int(p.item or 2), p.mode, value)]
+    if p.kind == "fault":
+        return [FaultMultiplier(tuple(p.faults), value)]
+    if p.kind == "wpimult":
+        return [PiMultiplier(tuple(p.wells or info.producers), value)]
     wells = p.wells or tuple(info.producers)
     return [SetSkin(tuple(wells), value, p.layers)]
 
@@ -188,6 +242,8 @@ def _rewrite_tables(block: Block, edits: list[TableTransform], file: Path) -> Bl
             top = col.max()
             if e.mode == "scale":
                 col = np.minimum(col * e.value, 1.0)
+            elif e.mode == "endpoint":
+                col = shift_endpoint(table[:, 0], col, e.value)
             elif top > 0:
                 col = top * (col / top) ** e.value
             table[:, e.column - 1] = col
@@ -195,6 +251,36 @@ def _rewrite_tables(block: Block, edits: list[TableTransform], file: Path) -> Bl
         new_lines.append("/\n")
     new_lines.append("\n")
     return Block(block.keyword, new_lines)
+
+
+def shift_endpoint(sat, kr, shift: float):
+    """``kr`` on the saturation nodes ``sat`` with its critical saturation moved by ``shift``.
+
+    The critical saturation is where the curve leaves 0 (the last zero before it rises, or the
+    first zero after it falls); the curve between it and its far end point (the table's last
+    or first node) is stretched linearly onto the new range and read at the same nodes, so the
+    table keeps its rows (TABDIMS) and its end points."""
+    import numpy as np
+
+    sat, kr = np.asarray(sat, float), np.asarray(kr, float)
+    rising = kr[-1] >= kr[0]
+    s, k = (sat, kr) if rising else (sat[::-1], kr[::-1])
+    sign = 1.0 if rising else -1.0
+    zero = np.flatnonzero(k <= 0)
+    crit = s[zero[-1]] if zero.size and zero[-1] < k.size - 1 else s[0]
+    far = s[-1]
+    span = far - crit
+    if abs(span) < 1e-12:
+        return kr.copy()
+    new_crit = np.clip(crit + sign * shift, min(s[0], far), max(s[0], far))
+    new_crit = crit + np.clip(new_crit - crit, -0.98 * span if sign > 0 else 0.98 * span,
+                              0.98 * span if sign > 0 else -0.98 * span)
+    u = (s - new_crit) / (far - new_crit)          # 0 at the new critical point, 1 at the end
+    old_s = crit + np.clip(u, 0.0, 1.0) * span     # where the old curve had that fraction
+    order = np.argsort(s)
+    out = np.where(u <= 0, 0.0, np.interp(old_s, s[order], k[order]))
+    out[np.abs(out) < 1e-12] = 0.0
+    return out if rising else out[::-1]
 
 
 def _table_records(body: str) -> list[list[str]]:
@@ -209,9 +295,21 @@ def _table_records(body: str) -> list[list[str]]:
     return [r for r in out if r]
 
 
-def _multiply_block(mults: list[Multiply]) -> str:
-    body = "".join(m.record() + "\n" for m in mults)
-    return f"-- parameter multipliers added by hmflow\nMULTIPLY\n{body}/\n\n"
+def _multiply_block(mults: list[Multiply | FaultMultiplier | RegionTransmissibility]) -> str:
+    """The GRID-end block: MULTIPLY (boxes, everywhere), MULTIREG (regions), MULTFLT (faults),
+    MULTREGT (between regions)."""
+    grid = "".join(m.record() + "\n" for m in mults
+                   if isinstance(m, Multiply) and m.region is None)
+    regions = "".join(m.region_records() for m in mults
+                      if isinstance(m, Multiply) and m.region is not None)
+    faults = "".join(m.records() for m in mults if isinstance(m, FaultMultiplier))
+    between = "".join(m.record() for m in mults if isinstance(m, RegionTransmissibility))
+    text = "-- parameter multipliers added by hmflow\n"
+    for keyword, body in (("MULTIPLY", grid), ("MULTIREG", regions), ("MULTFLT", faults),
+                          ("MULTREGT", between)):
+        if body:
+            text += f"{keyword}\n{body}/\n\n"
+    return text
 
 
 def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[SetSkin],
@@ -236,8 +334,9 @@ def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[
                 out.append("\n")
             else:
                 out.append(f"INCLUDE\n  '{path}' /\n\n")
-        elif block.keyword == "COMPDAT" and skins:
-            out.extend(_rewrite_compdat(block, skins, file).lines)
+        elif block.keyword == "COMPDAT" and (skins or state["pimults"]):
+            out.extend(_rewrite_compdat(block, skins, file).lines if skins else block.lines)
+            out.append(_wpimult_block(block, state["pimults"]))
         elif any(e.keyword == block.keyword for e in items):
             out.extend(_rewrite_items(block, [e for e in items if e.keyword == block.keyword],
                                       file).lines)
@@ -251,6 +350,14 @@ def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[
     return "".join(out)
 
 
+def _wpimult_block(compdat: Block, pimults: list[PiMultiplier]) -> str:
+    """WPIMULT for the targeted wells this COMPDAT block connects (empty when none)."""
+    named = {rec[0].strip("'\"") for rec in records(compdat.body) if rec}
+    lines = [f" '{w}' {m.factor:.10g} /\n" for m in pimults for w in m.wells if w in named]
+    return ("\n-- productivity multipliers added by hmflow\nWPIMULT\n" + "".join(lines)
+            + "/\n\n") if lines else ""
+
+
 def _needs_inlining(path: Path, info: DeckInfo, skins: list[SetSkin], state: dict) -> bool:
     """Inline an include only if it holds something to edit (COMPDAT, or the GRID end)."""
     if path.suffix.upper() in {".GRDECL", ".GEO", ".PRP", ".INC"} and path.stat().st_size > 2**20:
@@ -258,17 +365,18 @@ def _needs_inlining(path: Path, info: DeckInfo, skins: list[SetSkin], state: dic
     text = path.read_text(errors="replace")
     names = {b.keyword for b in split_blocks(text, info.keyword_names)}
     touched = {e.keyword for e in state["items"] + state["tables"]}
-    return bool((skins and "COMPDAT" in names) or (names & touched)
+    return bool(((skins or state["pimults"]) and "COMPDAT" in names) or (names & touched)
                 or (state["section"] == "GRID" and names & set(SECTIONS)))
 
 
 def render_deck(info: DeckInfo, edits: list[Edit]) -> str:
     """The per-run deck text for ``edits`` applied to the deck described by ``info``."""
-    mults = [e for e in edits if isinstance(e, Multiply)]
+    mults = [e for e in edits if isinstance(e, GRID_END)]
     skins = [e for e in edits if isinstance(e, SetSkin)]
     state = {"section": None, "multiplied": False, "done": set(),
              "items": [e for e in edits if isinstance(e, ItemMultiply)],
-             "tables": [e for e in edits if isinstance(e, TableTransform)]}
+             "tables": [e for e in edits if isinstance(e, TableTransform)],
+             "pimults": [e for e in edits if isinstance(e, PiMultiplier)]}
     text = _render_file(info.path, info, mults, skins, state)
     missing = {e.keyword for e in state["items"] + state["tables"]} - state["done"]
     if missing:

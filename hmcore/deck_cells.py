@@ -14,6 +14,9 @@ import numpy as np
 
 MILLIDARCY_M2 = 9.869233e-16  # opm.io returns permeability in SI units (m2)
 CELL_KEYWORDS = ("PORO", "PERMX", "PERMY", "PERMZ", "PORV")
+REGION_KEYWORDS = ("MULTNUM", "FLUXNUM", "OPERNUM", "FIPNUM")
+Box = tuple[int, int, int, int, int, int]
+Region = tuple[str, tuple[int, ...]]  # (region keyword, region numbers)
 
 
 @dataclass(frozen=True, eq=False)
@@ -23,6 +26,7 @@ class CellProperties:
 
     ijk: np.ndarray | None          # None: positions unknown (a box then reaches every cell)
     arrays: dict[str, np.ndarray]
+    regions: dict[str, np.ndarray] | None = None  # region keyword -> (n,) region numbers
 
     @property
     def n(self) -> int:
@@ -40,17 +44,29 @@ class CellProperties:
             if kw in fp:
                 arr = np.asarray(fp.get_double_array(kw), float)
                 arrays[kw] = arr / MILLIDARCY_M2 if kw.startswith("PERM") else arr
-        return CellProperties(_active_ijk(deck, grid), arrays)
+        regions = {kw: np.asarray(fp.get_int_array(kw), int) for kw in REGION_KEYWORDS
+                   if kw in fp}
+        return CellProperties(_active_ijk(deck, grid), arrays, regions)
 
-    def factors(self, multipliers: list[tuple[str, float, tuple[int, ...] | None]]
+    def factors(self, multipliers: list[tuple[str, float, Box | Region | None]]
                 ) -> dict[str, np.ndarray]:
-        """Per-cell factor of each keyword after ``(keyword, factor, box or None)`` multipliers
-        (1-based inclusive box ``(i1, i2, j1, j2, k1, k2)``); keywords never named are absent."""
+        """Per-cell factor of each keyword after ``(keyword, factor, where)`` multipliers:
+        ``where`` is None (every cell), a 1-based inclusive box ``(i1, i2, j1, j2, k1, k2)``
+        or a region ``("MULTNUM", (2, 3))``; keywords never named are absent."""
         out: dict[str, np.ndarray] = {}
-        for keyword, factor, box in multipliers:
+        for keyword, factor, where in multipliers:
             f = out.setdefault(keyword.upper(), np.ones(self.n))
-            f[self.in_box(box)] *= factor
+            f[self.mask(where)] *= factor
         return out
+
+    def mask(self, where: Box | Region | None) -> np.ndarray:
+        if where is not None and isinstance(where[0], str):
+            keyword, numbers = where
+            arr = (self.regions or {}).get(str(keyword).upper())
+            if arr is None:  # not defined in the deck: every cell is region 1
+                return np.full(self.n, 1 in numbers)
+            return np.isin(arr, numbers)
+        return self.in_box(where)
 
     def in_box(self, box: tuple[int, ...] | None) -> np.ndarray:
         """Mask of the active cells inside a 1-based inclusive box (all cells when None)."""

@@ -18,9 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from hmcore.deck_cells import MILLIDARCY_M2, CellProperties
+from hmcore.deck_cells import MILLIDARCY_M2, REGION_KEYWORDS, CellProperties
 from hmcore.eclipse_lexer import include_target, split_blocks
 from hmcore.errors import CaseError, Problem
+from hmcore.history import History, read_history
+from hmcore.includes import resolve_include
 
 UNIT_SYSTEMS = ("METRIC", "FIELD", "LAB", "PVT-M")
 SECTION_NAMES = ("RUNSPEC", "GRID", "EDIT", "PROPS", "REGIONS", "SOLUTION", "SUMMARY", "SCHEDULE")
@@ -46,6 +48,11 @@ class DeckInfo:
     report_days: tuple[float, ...]
     properties: dict[str, tuple[float, float]] = field(default_factory=dict)  # (min, max); PERM* in mD
     cells: CellProperties | None = field(default=None, repr=False, compare=False)
+    history: History = field(default_factory=History, repr=False, compare=False)  # WCONHIST...
+    faults: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()  # what OPM Flow tolerates (file and line in the text)
+    regions: dict[str, tuple[int, ...]] = field(default_factory=dict)  # MULTNUM... -> numbers
+    grid_keywords: frozenset[str] = frozenset()  # keywords of the GRID section
 
     @property
     def unit_system(self) -> str:
@@ -70,7 +77,7 @@ class DeckInfo:
         problems = missing_includes(path)
         if problems:
             raise CaseError(problems)
-        deck, state, schedule = _parse(path)
+        deck, state, schedule, warnings = _parse(path)
         names = frozenset(kw.name for kw in deck) | frozenset(SECTION_NAMES) | {"INCLUDE"}
         wells = {}
         for name in schedule.well_names("*"):
@@ -96,38 +103,71 @@ class DeckInfo:
                     scale = 1.0 / MILLIDARCY_M2 if kw.startswith("PERM") else 1.0
                     props[kw] = (float(arr.min()) * scale, float(arr.max()) * scale)
         return DeckInfo(path, names, wells, (grid.nx, grid.ny, grid.nz), grid.nactive, start,
-                        days, props, CellProperties.from_parsed(deck, state))
+                        days, props, CellProperties.from_parsed(deck, state),
+                        read_history(deck, days, wells), tuple(state.faultNames()), warnings,
+                        _region_numbers(state), _grid_keywords(deck))
 
 
-def missing_includes(path: Path, main_dir: Path | None = None, seen: set | None = None
-                     ) -> list[Problem]:
-    """Every INCLUDE (recursively) that names a file that does not exist."""
-    main_dir = main_dir or path.parent
-    seen = seen if seen is not None else set()
-    problems = []
-    text = path.read_text(errors="replace")
-    line_no = 1
-    for block in split_blocks(text, {"INCLUDE"}):
-        if block.keyword == "INCLUDE":
-            target = include_target(block)
-            if not target:
-                problems.append(Problem(f"{path} line {line_no}", "INCLUDE names no file",
-                                        "write INCLUDE, then 'file.inc' / on the next line"))
-            else:
-                cands = [Path(target)] if Path(target).is_absolute() else [
-                    main_dir / target, path.parent / target]
-                found = next((c for c in cands if c.is_file()), None)
-                if found is None:
-                    problems.append(Problem(
-                        f"{path} line {line_no}", f"INCLUDE file '{target}' not found "
-                        f"(looked in {sorted({str(c.parent) for c in cands})})",
-                        "fix the path or copy the file next to the deck"))
-                elif found.resolve() not in seen:
-                    seen.add(found.resolve())
-                    problems.extend(missing_includes(found, main_dir, seen))
-        line_no += len(block.lines)
+def _region_numbers(state) -> dict[str, tuple[int, ...]]:
+    fp = state.field_props()
+    return {kw: tuple(int(v) for v in np.unique(np.asarray(fp.get_int_array(kw))))
+            for kw in REGION_KEYWORDS if kw in fp}
+
+
+def _grid_keywords(deck) -> frozenset[str]:
+    section, names = None, set()
+    for kw in deck:
+        if kw.name in SECTION_NAMES:
+            section = kw.name
+        elif section == "GRID":
+            names.add(kw.name)
+    return frozenset(names)
+
+
+def missing_includes(path: Path, main_dir: Path | None = None) -> list[Problem]:
+    """Every INCLUDE (recursively) that names no file, a file that does not exist, or a file
+    already being included (a cycle: OPM's parser would never end). Files are found by
+    :func:`hmcore.includes.resolve_include`, the one INCLUDE resolver."""
+    path = Path(path).resolve()
+    main_dir = Path(main_dir or path.parent).resolve()
+    problems: list[Problem] = []
+    done: set[Path] = set()
+
+    def visit(file: Path, chain: tuple[Path, ...]) -> None:
+        done.add(file)
+        line_no = 1
+        for block in split_blocks(file.read_text(errors="replace"), {"INCLUDE"}):
+            if block.keyword == "INCLUDE":
+                where = f"{file} line {line_no}"
+                target = include_target(block)
+                found = resolve_include(target, file, main_dir) if target else None
+                if not target:
+                    problems.append(Problem(where, "INCLUDE names no file",
+                                            "write INCLUDE, then 'file.inc' / on the next line"))
+                elif not found.is_file():
+                    looked = [str(found.parent)] if Path(target).is_absolute() else sorted(
+                        {str(main_dir), str(file.parent)})
+                    problems.append(Problem(where, f"INCLUDE file '{target}' not found "
+                                            f"(looked in {looked})",
+                                            "fix the path or copy the file next to the deck"))
+                elif found.resolve() in chain:
+                    cycle = " -> ".join(p.name for p in (*chain[chain.index(found.resolve()):],
+                                                         found.resolve()))
+                    problems.append(Problem(where, f"INCLUDE '{target}' makes a cycle ({cycle}): "
+                                            "the deck would include itself without end",
+                                            "remove the INCLUDE that leads back"))
+                elif found.resolve() not in done:
+                    visit(found.resolve(), (*chain, found.resolve()))
+            line_no += len(block.lines)
+
+    visit(path, (path,))
     return problems
 
+
+# parse errors OPM Flow reports as warnings and runs on (its default parsing strictness):
+# e.g. a stray '/' line after TUNING in Norne's schedule
+FLOW_TOLERATES = ("PARSE_RANDOM_SLASH", "PARSE_MISSING_DIMS_KEYWORD", "SUMMARY_UNKNOWN_WELL",
+                  "SUMMARY_UNKNOWN_GROUP")
 
 _STDOUT_LOCK = threading.Lock()
 
@@ -163,13 +203,21 @@ def _parse(path: Path):
     from opm.io.parser import ParseContext, Parser
     from opm.io.schedule import Schedule
 
+    import opm.io
+
+    warnings: list[str] = []
     try:
         with _quiet_stdout():
-            deck = Parser().parse(str(path), ParseContext())
+            try:
+                deck = Parser().parse(str(path), ParseContext())
+            except Exception as strict:  # what OPM Flow itself tolerates is only a warning
+                tolerated = [(name, opm.io.action.warn) for name in FLOW_TOLERATES]
+                deck = Parser().parse(str(path), ParseContext(tolerated))
+                warnings.append(" ".join(str(strict).split()))
             state = EclipseState(deck)
             schedule = Schedule(deck, state)
     except Exception as exc:  # opm.io raises RuntimeError/ValueError with the parser's text
         raise CaseError([Problem(str(path), f"OPM cannot parse the deck: {exc}",
                                  "fix the keyword named above; run OPM Flow on the deck by "
                                  "hand to see its full message")]) from exc
-    return deck, state, schedule
+    return deck, state, schedule, tuple(warnings)

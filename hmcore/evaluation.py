@@ -25,7 +25,7 @@ from hmcore.metrics import compute_metrics
 from hmcore.misfit import category_ranges, misfit
 from hmcore.physics import check_physics, check_responses
 from hmcore.responses import last_time, read_responses
-from hmcore.simulator import Simulator, make_simulator
+from hmcore.simulator import Simulator
 
 
 SCORING_VERSION = 2
@@ -107,6 +107,14 @@ def _failure_of(record: dict) -> FailureKind | None:
     return FailureKind(head) if head in {k.value for k in FailureKind} else FailureKind.CRASH
 
 
+def simulator_for(case: Case) -> Simulator:
+    """The case's simulator: its backend, timeout, threads per run and stop step."""
+    from hmcore import simulator as simulators  # looked up when called (tests replace it)
+
+    return simulators.make_simulator(case.simulator.backend, case.simulator.timeout_s,
+                                     case.simulator.threads, case.stop_step)
+
+
 def score_responses(case: Case, responses: pd.DataFrame) -> dict:
     """Misfit and metrics of simulated ``responses`` against the case's history.
 
@@ -132,7 +140,7 @@ def evaluate(case: Case, values: dict[str, float], run_dir: Path,
              simulator: Simulator | None = None) -> Evaluation:
     """Simulate ``values`` (physical units) in ``run_dir`` and score the result."""
     start = time.perf_counter()
-    simulator = simulator or make_simulator(case.simulator.backend, case.simulator.timeout_s)
+    simulator = simulator or simulator_for(case)
     phys = check_physics(values, case.space, case.info, case.physics)
     fail_reward = -case.physics.failure_penalty - phys.penalty
 
@@ -162,9 +170,9 @@ def evaluate(case: Case, values: dict[str, float], run_dir: Path,
         return failed(FailureKind.UNREADABLE_OUTPUT, f"cannot read {result.summary_path.name}: "
                       f"{type(exc).__name__}: {' '.join(str(exc).split())[:200]}",
                       result.wall_time_s)
-    if end < case.info.end_days - 1e-3:
+    if end < case.run_end_days - 1e-3:
         return failed(FailureKind.NO_CONVERGENCE, f"stopped at day {end} of "
-                      f"{case.info.end_days}", result.wall_time_s)
+                      f"{case.run_end_days}", result.wall_time_s)
     if not responses.empty and not np.isfinite(responses["value"].to_numpy(float)).all():
         bad = responses[~np.isfinite(responses["value"].to_numpy(float))]
         return failed(FailureKind.INVALID_VALUES, f"{len(bad)} simulated values are not finite "

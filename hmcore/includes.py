@@ -22,8 +22,8 @@ def resolve_include(target: str, including_file: Path, main_dir: Path) -> Path:
 
 def deck_files(main: Path) -> list[Path]:
     """``main`` and every existing file it INCLUDEs, recursively, each once (a cycle is
-    followed once), in the order first met. Missing includes are
-    :func:`hmcore.deck_info.missing_includes`' business."""
+    followed once), in the order first met. Missing includes and cycles are reported (with
+    their line) by :func:`hmcore.deck_info.missing_includes`, which resolves them here too."""
     main = Path(main).resolve()
     seen: list[Path] = []
     stack = [main]

@@ -22,10 +22,13 @@ import numpy as np
 import pandas as pd
 
 from hmcore.misfit import DIAGNOSTIC, PRIMARY
+from hmcore.results import natural_key
 
 EPS = 1e-12
 CATEGORIES = {"oil": PRIMARY["oil"], "water": PRIMARY["water"], "gas": PRIMARY["gas"],
-              "bhp": PRIMARY["bhp"], **DIAGNOSTIC}
+              "bhp": PRIMARY["bhp"], **DIAGNOSTIC, "water_inj": PRIMARY["water_inj"],
+              "gas_inj": PRIMARY["gas_inj"]}
+OPTIONAL = ("water_inj", "gas_inj")  # shown only when the history has them
 
 
 def nmse(y: np.ndarray, yhat: np.ndarray) -> float:
@@ -126,9 +129,11 @@ def category_table(metrics: dict) -> pd.DataFrame:
     """The paper's category table: rows oil, water, gas, bhp, gor, wct, macro."""
     cats = metrics["categories"]
     rows = [{"category": c, "N": cats[c]["n"], "NMSE": cats[c]["nmse"], "R2": cats[c]["r2"],
-             "C_match": cats[c]["cmatch"]} for c in CATEGORIES if c in cats]
+             "C_match": cats[c]["cmatch"]} for c in CATEGORIES
+            if c in cats and (c not in OPTIONAL or cats[c]["n"])]
     mac = metrics["macro"]
-    rows.append({"category": "macro (oil, water, gas, bhp)",
+    injection = [c for c in OPTIONAL if cats.get(c, {}).get("n")]
+    rows.append({"category": "macro (" + ", ".join(["oil", "water", "gas", "bhp", *injection]) + ")",
                  "N": sum(metrics["categories"][c]["n"] for c in PRIMARY),
                  "NMSE": mac["nmse"], "R2": mac["r2"], "C_match": mac["cmatch"]})
     return pd.DataFrame(rows)
@@ -137,7 +142,7 @@ def category_table(metrics: dict) -> pd.DataFrame:
 def well_table(metrics: dict) -> pd.DataFrame:
     """The paper's well x response table of C_match (%)."""
     rows = []
-    for well, cats in sorted(metrics["wells"].items(), key=lambda kv: _natural(kv[0])):
+    for well, cats in sorted(metrics["wells"].items(), key=lambda kv: natural_key(kv[0])):
         rows.append({"well": well, **{c: cats.get(c, {}).get("cmatch", float("nan"))
                                       for c in CATEGORIES}})
     return pd.DataFrame(rows, columns=["well", *CATEGORIES])
@@ -149,7 +154,7 @@ def ratio_table(metrics: dict) -> pd.DataFrame:
     rows = []
     excluded = metrics.get("excluded", {})
     for cat in DIAGNOSTIC:
-        for well, cats in sorted(metrics["wells"].items(), key=lambda kv: _natural(kv[0])):
+        for well, cats in sorted(metrics["wells"].items(), key=lambda kv: natural_key(kv[0])):
             if cat in cats:
                 rows.append(_ratio_row(cat, well, cats[cat], excluded.get(cat, {}).get(well, {})))
         if cat in metrics["categories"]:
@@ -167,9 +172,3 @@ def _ratio_row(cat: str, well: str, s: dict, why: dict[str, int]) -> dict:
             "why": ", ".join(f"{k} {n}" for k, n in sorted(why.items())),
             "NMSE": s["nmse"], "R2": s["r2"], "C_match": s["cmatch"]}
 
-
-def _natural(name: str) -> tuple:
-    """Sort key so that PRO-4 comes before PRO-11."""
-    import re
-
-    return tuple(int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name))

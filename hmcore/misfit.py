@@ -1,4 +1,5 @@
-"""The reference misfit E: equal-weight mean over BHP, oil, water and gas of range-normalised MSE.
+"""The reference misfit E: equal-weight mean over BHP, oil, water and gas of range-normalised MSE
+(and injectors' water and gas injection rates when the history has them).
 
 For category c with matched pairs (y_obs, y_sim) pooled over wells,
 ``MSE_c = mean(((y_sim - y_obs) / range_c)^2)`` with ``range_c = max(y_obs) - min(y_obs)``
@@ -14,7 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-PRIMARY = {"bhp": "WBHP", "oil": "WOPR", "water": "WWPR", "gas": "WGPR"}
+PRIMARY = {"bhp": "WBHP", "oil": "WOPR", "water": "WWPR", "gas": "WGPR",
+           "water_inj": "WWIR", "gas_inj": "WGIR"}  # injection: only when observed
 DIAGNOSTIC = {"gor": "WGOR", "wct": "WWCT"}
 CATEGORY_OF = {q: c for c, q in {**PRIMARY, **DIAGNOSTIC}.items()}
 

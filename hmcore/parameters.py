@@ -6,7 +6,11 @@ that maps actions to physical values (linearly) and back.
 Kinds (each turns a value into deck edits, see :mod:`hmcore.deck`):
 
 * ``multiply`` - multiply grid keywords (``PORO``, ``PERMX``, ...), optionally in a 1-based box
-  ``(i1, i2, j1, j2, k1, k2)``; several keywords may share one factor.
+  ``(i1, i2, j1, j2, k1, k2)`` or in the cells of ``region_numbers`` of the region keyword
+  ``region`` (``MULTNUM``, ``FLUXNUM`` or ``OPERNUM`` as the GRID section defines it; written
+  as ``MULTIREG``); several keywords may share one factor.
+* ``multregt`` - the transmissibility multiplier between two regions (``MULTREGT``):
+  ``region_numbers = [r1, r2]`` of ``region`` (default ``MULTNUM``), all directions.
 * ``skin`` - set COMPDAT item 11 (skin) on the connections of ``wells`` (all producers when
   empty), optionally only on ``layers`` (1-based k).
 * ``item_multiply`` - multiply numeric item ``item`` (1-based) of the records of ``keywords[0]``
@@ -14,18 +18,45 @@ Kinds (each turns a value into deck edits, see :mod:`hmcore.deck`):
   whose first item equals ``match`` when given (an aquifer id, say).
 * ``relperm`` - transform column ``item`` (1-based, default 2: krw in SWOF/SWFN, krg in
   SGOF/SGFN) of every table of ``keywords[0]``: ``mode="scale"`` multiplies it (capped at 1),
-  ``mode="power"`` raises its normalised shape to the given exponent, keeping end points.
+  ``mode="power"`` raises its normalised shape to the given exponent, keeping end points;
+  ``mode="endpoint"`` moves the critical saturation of that curve (where it reaches 0: SWCR
+  for krw in SWOF/SWFN, SOWCR for krow, SGCR for krg) by the value, in saturation units,
+  stretching the curve between it and its far end point (two-point end-point scaling, applied
+  to the table itself; the value may be negative).
+* ``wpimult`` - multiply the productivity index of ``wells``' connections (all producers when
+  empty) with ``WPIMULT``, written after every COMPDAT that connects them.
+* ``fault`` - set the transmissibility multiplier (``MULTFLT``) of the faults named in
+  ``faults`` (the deck's ``FAULTS`` names), replacing the deck's own multiplier.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from enum import StrEnum
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, Strict, model_validator
 
-ParameterKind = Literal["multiply", "skin", "item_multiply", "relperm"]
+
+class ParameterKind(StrEnum):
+    """What a parameter does to the deck (see the module's docstring)."""
+
+    MULTIPLY = "multiply"
+    SKIN = "skin"
+    ITEM_MULTIPLY = "item_multiply"
+    RELPERM = "relperm"
+    FAULT = "fault"
+    MULTREGT = "multregt"
+    WPIMULT = "wpimult"
+
+
+Bound = Annotated[float, Strict(), AllowInfNan(False)]  # a finite number (TOML true/inf refused)
+MULTIREG_REGIONS = {"MULTNUM": "M", "FLUXNUM": "F", "OPERNUM": "O"}
 RELPERM_TABLES = ("SWOF", "SGOF", "SWFN", "SGFN", "SOF3", "SOF2", "SLGOF")
+RELPERM_COLUMNS = {"SWOF": (2, 3), "SGOF": (2, 3), "SLGOF": (2, 3), "SWFN": (2,), "SGFN": (2,),
+                   "SOF3": (2, 3), "SOF2": (2,)}  # 1-based columns holding a relative
+# permeability (column 1 is the saturation; SWOF/SGOF/SLGOF's 4th, SWFN/SGFN's 3rd: capillary
+# pressure)
 GRID_MULTIPLIABLE = ("PORO", "PERMX", "PERMY", "PERMZ", "NTG", "MULTX", "MULTY", "MULTZ",
                      "MULTX-", "MULTY-", "MULTZ-")
 
@@ -37,15 +68,18 @@ class Parameter(BaseModel):
 
     name: str = Field(min_length=1)
     kind: ParameterKind
-    low: float
-    high: float
+    low: Bound
+    high: Bound
     keywords: tuple[str, ...] = ()
     wells: tuple[str, ...] = ()
+    faults: tuple[str, ...] = ()
     layers: tuple[int, ...] = ()
     box: tuple[int, int, int, int, int, int] | None = None
+    region: str | None = None
+    region_numbers: tuple[int, ...] = ()
     item: int | None = Field(default=None, ge=1)
     match: str | None = None
-    mode: Literal["scale", "power"] = "scale"
+    mode: Literal["scale", "power", "endpoint"] = "scale"
     description: str = ""
 
     @model_validator(mode="after")
@@ -72,7 +106,44 @@ class Parameter(BaseModel):
         if self.kind == "relperm" and self.keywords[0].upper() not in RELPERM_TABLES:
             raise ValueError(f"parameter '{self.name}': relperm tables are {list(RELPERM_TABLES)}, "
                              f"got {self.keywords[0]!r}")
-        if self.kind in ("item_multiply", "relperm") and self.low <= 0:
+        if self.kind == "relperm" and (self.item or 2) not in \
+                RELPERM_COLUMNS[self.keywords[0].upper()]:
+            columns = RELPERM_COLUMNS[self.keywords[0].upper()]
+            raise ValueError(f"parameter '{self.name}': item {self.item} of "
+                             f"{self.keywords[0].upper()} is not a relative permeability column; "
+                             f"use item = {' or '.join(map(str, columns))} (column 1 is the "
+                             "saturation, the others capillary pressure)")
+        if self.region is not None and self.region.upper() not in MULTIREG_REGIONS:
+            raise ValueError(f"parameter '{self.name}': region must be one of "
+                             f"{list(MULTIREG_REGIONS)} (what MULTIREG and MULTREGT read), got "
+                             f"{self.region!r}; to use FIPNUM's layout, copy it into MULTNUM "
+                             "in the GRID section")
+        if self.region is not None and self.kind == "multiply" and not self.region_numbers:
+            raise ValueError(f"parameter '{self.name}': region needs region_numbers, "
+                             "e.g. region_numbers = [2]")
+        if self.region is not None and self.box is not None:
+            raise ValueError(f"parameter '{self.name}': give a box or a region, not both")
+        if self.region_numbers and self.region is None and self.kind != "multregt":
+            raise ValueError(f"parameter '{self.name}': region_numbers need region, "
+                             "e.g. region = \"MULTNUM\"")
+        if self.kind == "multregt" and (len(self.region_numbers) != 2
+                                        or len(set(self.region_numbers)) != 2):
+            raise ValueError(f"parameter '{self.name}' of kind 'multregt' needs two different "
+                             f"region_numbers [r1, r2], got {list(self.region_numbers)}")
+        if self.kind == "multregt" and self.low < 0:
+            raise ValueError(f"parameter '{self.name}' must have low >= 0, got low={self.low}")
+        if self.kind == "fault" and not self.faults:
+            raise ValueError(f"parameter '{self.name}' of kind 'fault' needs faults, "
+                             "e.g. faults = [\"F1\"] (names from the deck's FAULTS keyword)")
+        if self.kind == "fault" and self.low < 0:
+            raise ValueError(f"fault multiplier '{self.name}' must have low >= 0, "
+                             f"got low={self.low}")
+        if self.kind == "relperm" and self.mode == "endpoint" and not (
+                -0.5 < self.low and self.high < 0.5):
+            raise ValueError(f"parameter '{self.name}': an end-point shift is a saturation "
+                             f"change within (-0.5, 0.5), got [{self.low}, {self.high}]")
+        if (self.kind in ("item_multiply", "wpimult")
+                or (self.kind == "relperm" and self.mode != "endpoint")) and self.low <= 0:
             raise ValueError(f"parameter '{self.name}' must have low > 0, got low={self.low}")
         if self.box is not None:
             i1, i2, j1, j2, k1, k2 = self.box

@@ -6,7 +6,7 @@ Before the simulator runs, on the base deck's cells scaled by the proposal's mul
 * ``parameter_range`` - multipliers stay > 0, skins above -6 (more negative skins make
   connection factors meaningless for unstimulated wells);
 * ``porosity_max`` / ``permeability_cap`` - the largest cell stays below ``poro_max`` and
-  ``perm_cap_md``;
+  the permeability cap (``perm_cap_ratio`` x the deck's own largest value, or ``perm_cap_md``);
 * ``kv_kh`` - per cell, kv/kh = PERMZ / sqrt(PERMX PERMY) in ``[kv_kh_min, kv_kh_max]``: the share
   of cells outside may grow by at most ``kv_kh_max_fraction`` over the deck's own share
   (PERMZ x3 with PERMX x0.3 gives 10x the deck's ratio);
@@ -40,6 +40,7 @@ from hmcore.parameters import ParameterSpace
 SKIN_MIN = -6.0
 ATMOSPHERE = {"METRIC": 1.01325, "FIELD": 14.696, "LAB": 1.0, "PVT-M": 1.0}
 WATER_CUT_SLACK = 1e-6
+PRESSURE_SLACK = 1e-3  # relative: summary files round 1 atm (14.696 psia) to float32
 
 
 class Check(str, Enum):
@@ -104,7 +105,8 @@ def check_physics(values: dict[str, float], space: ParameterSpace, info: DeckInf
             continue
         v = float(values[p.name])
         if p.kind == "multiply":
-            multipliers += [(kw.upper(), v, p.box) for kw in p.keywords]
+            where = (p.region.upper(), tuple(p.region_numbers)) if p.region else p.box
+            multipliers += [(kw.upper(), v, where) for kw in p.keywords]
             if v <= 0:
                 found.add(Check.PARAMETER_RANGE, 1.0 + abs(v), f"{p.name}={v:g} must be > 0")
                 runnable = False
@@ -128,8 +130,9 @@ def check_responses(responses: pd.DataFrame, info: DeckInfo, settings) -> Physic
     pmin = settings.pressure_min if settings.pressure_min is not None else \
         ATMOSPHERE.get(info.unit_system, 1.0)
     bhp = responses[(responses.quantity == "WBHP") & (responses.value > 0)]  # 0: not yet open
-    if not bhp.empty and bhp.value.min() < pmin:
-        low = bhp[bhp.value < pmin]
+    floor = pmin * (1.0 - PRESSURE_SLACK)  # a well held at the 1 atm limit is not below it
+    if not bhp.empty and bhp.value.min() < floor:
+        low = bhp[bhp.value < floor]
         worst = low.loc[low.value.idxmin()]
         found.add(Check.PRESSURE_MIN, (pmin - worst.value) / pmin,
                   f"simulated BHP {worst.value:.4g} below the minimum {pmin:g} "
@@ -163,11 +166,22 @@ def _check_extremes(cells, factors, settings, found: _Found) -> bool:
         runnable = hi < 1.0
     for kw in ("PERMX", "PERMY", "PERMZ"):
         k = _scaled(cells, factors, kw)
-        if k is not None and kw in factors and k.max() > settings.perm_cap_md:
+        if k is None or kw not in factors:
+            continue
+        cap = permeability_cap(settings, float(cells.get(kw).max()))
+        if k.max() > cap:
             hi = float(k.max())
-            found.add(Check.PERMEABILITY_CAP, (hi - settings.perm_cap_md) / settings.perm_cap_md,
-                      f"max {kw} {hi:.0f} mD > cap {settings.perm_cap_md:.0f} mD")
+            found.add(Check.PERMEABILITY_CAP, (hi - cap) / cap,
+                      f"max {kw} {hi:.0f} mD > cap {cap:.0f} mD")
     return runnable
+
+
+def permeability_cap(settings, deck_max_md: float) -> float:
+    """The cap in mD: ``perm_cap_md`` when the case sets it, else ``perm_cap_ratio`` times the
+    deck's own largest value (a field's permeability scale is its own: SPE9 reaches 10 D)."""
+    if settings.perm_cap_md is not None:
+        return float(settings.perm_cap_md)
+    return settings.perm_cap_ratio * deck_max_md
 
 
 def _horizontal(cells, factors) -> tuple[np.ndarray, np.ndarray] | None:

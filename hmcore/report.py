@@ -6,7 +6,6 @@ Nothing here runs a simulator; everything is rebuilt from stored metrics.
 
 from __future__ import annotations
 
-import json
 import math
 from typing import Any
 
@@ -14,6 +13,7 @@ import numpy as np
 import pandas as pd
 
 from hmcore.metrics import category_table, ratio_table, well_table
+from storage.jsonable import to_jsonable
 
 
 def _fmt(v: Any, digits: int = 4) -> str:
@@ -27,26 +27,6 @@ def metrics_markdown(metrics: dict, title: str = "Match quality") -> str:
     from hmcore import paper_tables
 
     return paper_tables.markdown(paper_tables.paper_tables(metrics), title)
-
-
-def to_jsonable(obj: Any) -> Any:
-    """Numpy scalars -> Python; NaN/inf -> None (JSON has no NaN)."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if hasattr(obj, "value") and hasattr(obj, "name"):  # Enum
-        return obj.value
-    return obj
-
-
-def dumps(obj: Any) -> str:
-    return json.dumps(to_jsonable(obj), indent=2, sort_keys=False)
 
 
 def metrics_document(ev) -> dict:

@@ -19,6 +19,8 @@ from matplotlib.figure import Figure
 # response quantity -> (title, observed response category in ObservationSet rows)
 PANELS = (("WOPR", "oil rate"), ("WWPR", "water rate"), ("WGPR", "gas rate"),
           ("WBHP", "bottom-hole pressure"), ("WGOR", "gas-oil ratio"), ("WWCT", "water cut"))
+INJECTOR_PANELS = (("WWIR", "water injection rate"), ("WGIR", "gas injection rate"),
+                   ("WBHP", "bottom-hole pressure"))
 STYLE = {"best": dict(color="#1f5fbf", lw=1.8, label="best case"),
          "centre": dict(color="#888888", lw=1.2, ls="--", label="prior centre"),
          "truth": dict(color="#2e8b57", lw=1.1, label="truth"),
@@ -42,12 +44,17 @@ def _unit(curves: pd.DataFrame, quantity: str) -> str:
 
 def well_curves(well: str, observed: pd.DataFrame, curves: pd.DataFrame,
                 history_end: float | None) -> bytes:
-    """Six panels for one well. ``observed``: ObservationSet rows of this well (``quantity,
-    days, observed, sigma, period``); ``curves``: the curves artifact rows of this well."""
-    fig = Figure(figsize=(13, 6.4))
-    axes = fig.subplots(2, 3, sharex=True)
+    """Six panels for one well (an injector's: its injection rates and BHP). ``observed``:
+    ObservationSet rows of this well (``quantity, days, observed, sigma, period``);
+    ``curves``: the curves artifact rows of this well."""
     end = float(curves.days.max()) if len(curves) else None
-    for ax, (q, title) in zip(axes.flat, PANELS):
+    panels = _panels(observed, curves)
+    rows = 2 if len(panels) > 3 else 1
+    fig = Figure(figsize=(13, 6.4 if rows == 2 else 3.6))
+    axes = fig.subplots(rows, 3, sharex=True, squeeze=False)
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
+    for ax, (q, title) in zip(axes.flat, panels):
         obs = observed[observed.quantity == q].sort_values("days")
         if history_end is not None and end is not None:
             last_obs = float(observed.days.max()) if len(observed) else history_end
@@ -83,8 +90,18 @@ def well_curves(well: str, observed: pd.DataFrame, curves: pd.DataFrame,
                 handles.append(h)
                 labels.append(lab)
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), frameon=False,
-               bbox_to_anchor=(0.5, -0.04))
+               bbox_to_anchor=(0.5, -0.04 if rows == 2 else -0.12))
     return png(fig)
+
+
+def _panels(observed: pd.DataFrame, curves: pd.DataFrame) -> tuple[tuple[str, str], ...]:
+    """A producer's six panels, or an injector's: the phases it injects and its BHP."""
+    def shows(q: str) -> bool:
+        sel = curves[curves.quantity == q]
+        return bool((observed.quantity == q).any() or (len(sel) and (sel.value > 0).any()))
+
+    injected = tuple(p for p in INJECTOR_PANELS[:2] if shows(p[0]))
+    return injected + INJECTOR_PANELS[2:] if injected else PANELS
 
 
 def _band(quantity: str, y: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -21,6 +21,7 @@ from markupsafe import Markup
 
 from hmcore import report_figures as figs
 from hmcore.metrics import well_table
+from hmcore.results import natural_key
 
 TEMPLATES = Path(__file__).parent / "templates"
 FAN = [("FOPT", "field cumulative oil"), ("FWPT", "field cumulative water"),
@@ -135,12 +136,8 @@ def _figures(inputs: ReportInputs, draw: bool) -> dict[str, bytes]:
 
 def _wells(inputs: ReportInputs) -> list[str]:
     wells = [w for w in inputs.case_doc.get("wells", []) if w in set(inputs.curves.well)]
-    return sorted(wells, key=_natural)
+    return sorted(wells, key=natural_key)
 
-
-def _natural(name: str) -> list:
-    import re
-    return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", name)]
 
 
 def _safe(name: str) -> str:

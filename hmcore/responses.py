@@ -1,8 +1,9 @@
 """Simulated responses: an Eclipse summary (SMSPEC/UNSMRY) -> tidy table.
 
 Table columns: ``well`` (str), ``days`` (float, days since START, rounded to 0.01 because the
-summary stores TIME as float32), ``quantity`` (WBHP, WOPR, WWPR, WGPR, WGOR, WWCT) and
-``value`` (bar, sm3/day, sm3/sm3, fraction in METRIC decks).
+summary stores TIME as float32), ``quantity`` (WBHP, WOPR, WWPR, WGPR, WGOR, WWCT; WWIR and WGIR for injectors) and
+``value`` in the deck's units (bar, sm3/day, sm3/sm3, fraction in METRIC decks; see
+:mod:`hmcore.units`).
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-QUANTITIES = ("WBHP", "WOPR", "WWPR", "WGPR", "WGOR", "WWCT")
+QUANTITIES = ("WBHP", "WOPR", "WWPR", "WGPR", "WGOR", "WWCT", "WWIR", "WGIR")
+INJECTION = ("WWIR", "WGIR")  # injectors' water and gas injection rates
 TIME_DECIMALS = 2
 
 

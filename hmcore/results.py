@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import re
+
 import pandas as pd
 
 from hmcore.misfit import PRIMARY
 
 COLUMNS = ["index", "phase", "lane", "status", "failure", "reason", "E", "penalty", "reward", "coverage",
            "E_heldout", "wall_time_s", "sim_time_s", "run_dir", "seed", "agent", "attempts"]
+
+
+def natural_key(name: object) -> tuple:
+    """Sort key of a name with numbers in it: digit runs compare as numbers, so that PRO-4
+    comes before PRO-11 and PROD2 before PROD10."""
+    return tuple(int(t) if t.isdigit() else t for t in re.split(r"(\d+)", str(name)))
 
 
 def results_table(records: list[dict], parameter_names: list[str]) -> pd.DataFrame:

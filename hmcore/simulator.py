@@ -193,8 +193,15 @@ class CommandLineSimulator:
         return _run_process(cmd, deck, run_dir, self.timeout_s, f"{self.name}:{cmd[0]}")
 
 
-def make_simulator(spec: str | None, timeout_s: float = 600.0) -> Simulator:
-    """Build a simulator from a user string: ``None``/``"opm"`` or a command template."""
+def make_simulator(spec: str | None, timeout_s: float = 600.0, threads: int = 1,
+                   stop_step: int | None = None) -> Simulator:
+    """Build a simulator from a user string: ``None``/``"opm"`` or a command template.
+
+    ``threads``: OpenMP threads per run (OPM's ``--threads-per-process``); ``stop_step``: end
+    each run after this report step. A command template states its own options and always
+    runs the whole schedule."""
     if spec in (None, "", "opm", "opm-flow"):
-        return OpmFlow(timeout_s=timeout_s)
+        extra = (() if threads == 1 else (f"--threads-per-process={threads}",)) + \
+            (() if stop_step is None else (f"--hmflow-stop-step={stop_step}",))
+        return OpmFlow(timeout_s=timeout_s, extra_args=extra)
     return CommandLineSimulator(template=spec, timeout_s=timeout_s)

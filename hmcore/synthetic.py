@@ -158,7 +158,58 @@ GAS_BREAKTHROUGH_GOR_RATIO = 1.10
 WCT_SIGMA_BEFORE = 0.02
 WCT_SIGMA_AFTER = 0.05
 WATER_BREAKTHROUGH_WCT = 0.01
-"""Water breakthrough: water cut first exceeds this fraction."""
+"""Water breakthrough: water cut first exceeds this fraction. The one water-breakthrough
+threshold of hmflow: the diagnosis, which sees it through noisy data, looks for the observed
+water cut to pass it by two standard deviations of the noise before breakthrough
+(:data:`hmcore.diagnosis.residuals.WATER_BREAKTHROUGH_SEEN`)."""
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Measurement noise of a well's observed history (PUNQ-S3's description, the model
+    description's sigma table): Gaussian, correlated in time as a unit AR(1) series along each
+    well's rows of one quantity. The one noise model of hmflow: the synthetic case
+    (:func:`make_observed`) and the hidden-effect cases (:mod:`hmcore.diagnosis.hidden`) both
+    draw their noise from it (:func:`noisy_series`)."""
+
+    rho: float = NOISE_RHO
+    """AR(1) correlation between consecutive observations of one well and quantity."""
+    bhp_flowing: float = BHP_SIGMA_FLOWING_BAR
+    """BHP sigma (bar) while the well flows ..."""
+    bhp_shut_in: float = BHP_SIGMA_SHUTIN_BAR
+    """... and while it is shut in."""
+    gor_before: float = GOR_SIGMA_FRAC_BEFORE
+    """GOR sigma as a fraction of the true GOR before gas breakthrough ..."""
+    gor_after: float = GOR_SIGMA_FRAC_AFTER
+    """... and after it."""
+    gas_breakthrough_ratio: float = GAS_BREAKTHROUGH_GOR_RATIO
+    """Gas breakthrough: GOR first exceeds the well's first flowing GOR by this factor."""
+    wct_before: float = WCT_SIGMA_BEFORE
+    """Water-cut sigma before water breakthrough ..."""
+    wct_after: float = WCT_SIGMA_AFTER
+    """... and after it."""
+    water_breakthrough_wct: float = WATER_BREAKTHROUGH_WCT
+    """Water breakthrough: water cut first exceeds this fraction."""
+
+    def describe(self) -> dict:
+        """The noise model in words and numbers (``truth.json``'s ``noise``)."""
+        return {
+            "model": "sigma * AR(1) unit-variance series along each well's rows of a quantity",
+            "ar1_rho": self.rho,
+            "WOPR": "rate control, no noise (sigma left empty)",
+            "WBHP_sigma_bar": {"flowing": self.bhp_flowing, "shut_in": self.bhp_shut_in},
+            "WGOR_sigma_fraction_of_value": {"before_gas_breakthrough": self.gor_before,
+                                             "after_gas_breakthrough": self.gor_after},
+            "gas_breakthrough": f"GOR > {self.gas_breakthrough_ratio} x first flowing GOR",
+            "WWCT_sigma": {"before_water_breakthrough": self.wct_before,
+                           "after_water_breakthrough": self.wct_after},
+            "water_breakthrough": f"WWCT > {self.water_breakthrough_wct}",
+            "clipping": "WWCT to [0, 1], WGOR to >= 0",
+        }
+
+
+PUNQ_NOISE = NoiseModel()
+"""PUNQ-S3's noise, the synthetic case's and the hidden-effect cases'."""
 
 OBSERVED_QUANTITIES = ("WOPR", "WBHP", "WGOR", "WWCT")
 TRUTH_QUANTITIES = ("WOPR", "WWPR", "WGPR", "WBHP", "WGOR", "WWCT")
@@ -579,15 +630,61 @@ def _breakthrough_mask(values: np.ndarray, threshold: float) -> np.ndarray:
     return np.maximum.accumulate(values > threshold) if values.size else values.astype(bool)
 
 
+@dataclass(frozen=True)
+class NoisySeries:
+    """One observed series of a well: days, noisy values, sigma (NaN: none) and flowing."""
+
+    quantity: str
+    days: np.ndarray
+    value: np.ndarray
+    sigma: np.ndarray
+    flowing: np.ndarray
+
+
+def noisy_series(days: np.ndarray, wopr: np.ndarray, wbhp: np.ndarray, wgor: np.ndarray,
+                 wwct: np.ndarray, rng: np.random.Generator,
+                 noise: NoiseModel = PUNQ_NOISE) -> tuple[list[NoisySeries], np.ndarray,
+                                                          np.ndarray]:
+    """A well's observed series from its noise-free responses at ``days`` (one value each).
+
+    WOPR: every step, no noise, no sigma (the rate control; flowing where it is positive).
+    WBHP: every step, sigma ``noise.bhp_flowing`` / ``noise.bhp_shut_in``. WGOR: flowing
+    steps, sigma ``noise.gor_before`` of the true value before gas breakthrough,
+    ``noise.gor_after`` after; clipped to >= 0. WWCT: flowing steps, sigma ``noise.wct_before``
+    before water breakthrough, ``noise.wct_after`` after; clipped to [0, 1]. Noise is sigma
+    times a unit AR(1) series (``noise.rho``) drawn from ``rng`` in that order (BHP, GOR, WCT).
+    Returns the four series (GOR and WCT may be empty) and the gas and water breakthrough
+    masks over the flowing steps."""
+    flowing = wopr > 0.0
+    fdays = days[flowing]
+    out = [NoisySeries("WOPR", days, wopr, np.full(days.size, np.nan), flowing)]
+    sig = np.where(flowing, noise.bhp_flowing, noise.bhp_shut_in)
+    out.append(NoisySeries("WBHP", days, wbhp + sig * _ar1(rng, days.size, noise.rho), sig,
+                           flowing))
+    gor = wgor[flowing]
+    gas_bt = _breakthrough_mask(gor, noise.gas_breakthrough_ratio * gor[0]) if gor.size \
+        else np.zeros(0, bool)
+    sig = np.where(gas_bt, noise.gor_after, noise.gor_before) * gor
+    out.append(NoisySeries("WGOR", fdays,
+                           np.maximum(gor + sig * _ar1(rng, gor.size, noise.rho), 0.0), sig,
+                           np.ones(gor.size, bool)))
+    wct = wwct[flowing]
+    water_bt = _breakthrough_mask(wct, noise.water_breakthrough_wct)
+    sig = np.where(water_bt, noise.wct_after, noise.wct_before)
+    out.append(NoisySeries("WWCT", fdays,
+                           np.clip(wct + sig * _ar1(rng, wct.size, noise.rho), 0.0, 1.0), sig,
+                           np.ones(wct.size, bool)))
+    return out, gas_bt, water_bt
+
+
 def make_observed(truth: pd.DataFrame, rng: np.random.Generator) -> tuple[pd.DataFrame, dict]:
     """Noisy observed history from noise-free ``truth`` (see :func:`read_truth_responses`).
 
     Returns the long table with columns ``OBSERVED_COLUMNS`` and per-well breakthrough days.
-    WOPR: every report step, no noise, empty sigma (the rate control). WBHP: every step,
-    sigma 3 bar flowing / 1 bar shut-in. WGOR: flowing steps, sigma 10 % of the true value
-    before gas breakthrough, 25 % after. WWCT: flowing steps, sigma 0.02 before water
-    breakthrough, 0.05 after. Noise is sigma times a unit AR(1) series (rho ``NOISE_RHO``)
-    along each well's rows of one quantity; WCT is clipped to [0, 1], GOR to >= 0.
+    The noise is :data:`PUNQ_NOISE` (see :func:`noisy_series`): WOPR exact (the rate
+    control), WBHP sigma 3 bar flowing / 1 bar shut-in, WGOR 10 % of the true value before gas
+    breakthrough and 25 % after, WWCT 0.02 before water breakthrough and 0.05 after, AR(1) in
+    time (rho ``NOISE_RHO``).
     """
     wide = truth.pivot_table(index=["well", "days"], columns="quantity", values="value")
     rows: list[pd.DataFrame] = []
@@ -595,32 +692,13 @@ def make_observed(truth: pd.DataFrame, rng: np.random.Generator) -> tuple[pd.Dat
     for w in WELLS:
         t = wide.loc[w.name]
         days = t.index.to_numpy(dtype=float)
-        flowing = t["WOPR"].to_numpy() > 0.0
-        fdays = days[flowing]
-
-        def add(q: str, d: np.ndarray, v: np.ndarray, sigma: np.ndarray, flow: np.ndarray) -> None:
-            rows.append(pd.DataFrame({"well": w.name, "days": d, "quantity": q, "value": v,
-                                      "sigma": sigma, "flowing": flow.astype(int)}))
-
-        add("WOPR", days, t["WOPR"].to_numpy(), np.full(days.size, np.nan), flowing)
-
-        bhp = t["WBHP"].to_numpy()
-        sig = np.where(flowing, BHP_SIGMA_FLOWING_BAR, BHP_SIGMA_SHUTIN_BAR)
-        add("WBHP", days, bhp + sig * _ar1(rng, days.size, NOISE_RHO), sig, flowing)
-
-        gor = t["WGOR"].to_numpy()[flowing]
-        gas_bt = _breakthrough_mask(gor, GAS_BREAKTHROUGH_GOR_RATIO * gor[0]) if gor.size \
-            else np.zeros(0, bool)
-        sig = np.where(gas_bt, GOR_SIGMA_FRAC_AFTER, GOR_SIGMA_FRAC_BEFORE) * gor
-        add("WGOR", fdays, np.maximum(gor + sig * _ar1(rng, gor.size, NOISE_RHO), 0.0), sig,
-            np.ones(gor.size, bool))
-
-        wct = t["WWCT"].to_numpy()[flowing]
-        water_bt = _breakthrough_mask(wct, WATER_BREAKTHROUGH_WCT)
-        sig = np.where(water_bt, WCT_SIGMA_AFTER, WCT_SIGMA_BEFORE)
-        add("WWCT", fdays, np.clip(wct + sig * _ar1(rng, wct.size, NOISE_RHO), 0.0, 1.0), sig,
-            np.ones(wct.size, bool))
-
+        series, gas_bt, water_bt = noisy_series(
+            days, t["WOPR"].to_numpy(), t["WBHP"].to_numpy(), t["WGOR"].to_numpy(),
+            t["WWCT"].to_numpy(), rng)
+        rows += [pd.DataFrame({"well": w.name, "days": x.days, "quantity": x.quantity,
+                               "value": x.value, "sigma": x.sigma,
+                               "flowing": x.flowing.astype(int)}) for x in series]
+        fdays = days[t["WOPR"].to_numpy() > 0.0]
         breakthrough[w.name] = {
             "gas_days": float(fdays[np.argmax(gas_bt)]) if gas_bt.any() else None,
             "water_days": float(fdays[np.argmax(water_bt)]) if water_bt.any() else None,
@@ -697,19 +775,7 @@ def write_synthetic_case(dest: Path, seed: int = 0, *, truth: dict[str, float] |
         "seed": seed,
         "parameters": values,
         "truth_space": [p.model_dump(mode="json") for p in space.parameters],
-        "noise": {
-            "model": "sigma * AR(1) unit-variance series along each well's rows of a quantity",
-            "ar1_rho": NOISE_RHO,
-            "WOPR": "rate control, no noise (sigma left empty)",
-            "WBHP_sigma_bar": {"flowing": BHP_SIGMA_FLOWING_BAR, "shut_in": BHP_SIGMA_SHUTIN_BAR},
-            "WGOR_sigma_fraction_of_value": {"before_gas_breakthrough": GOR_SIGMA_FRAC_BEFORE,
-                                             "after_gas_breakthrough": GOR_SIGMA_FRAC_AFTER},
-            "gas_breakthrough": f"GOR > {GAS_BREAKTHROUGH_GOR_RATIO} x first flowing GOR",
-            "WWCT_sigma": {"before_water_breakthrough": WCT_SIGMA_BEFORE,
-                           "after_water_breakthrough": WCT_SIGMA_AFTER},
-            "water_breakthrough": f"WWCT > {WATER_BREAKTHROUGH_WCT}",
-            "clipping": "WWCT to [0, 1], WGOR to >= 0",
-        },
+        "noise": PUNQ_NOISE.describe(),
         "breakthrough_days": breakthrough,
         "history_end_days": end,
         "files": {"deck": DECK_NAME, "observed": OBSERVED_NAME,

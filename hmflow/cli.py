@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 from pathlib import Path
 from typing import Optional
@@ -18,6 +19,7 @@ from rich.table import Table
 
 from hmcore.agents import AGENTS
 from hmcore.errors import CaseError
+from hmcore.units import deck_unit
 from hmflow.console import (Watch, bench_poll, campaign_poll, diagnosis_poll, prefect_environment,
                             status_text, summary_table)
 
@@ -70,17 +72,44 @@ def _signals() -> None:
         signal.signal(signal.SIGTERM, interrupt)
 
 
+def _folder(option: str, path: Path) -> Path:
+    """A folder option (``--out``, ``--storage``): exit 2 with one line when it names a file
+    or cannot be a path, before anything runs."""
+    try:
+        path = path.expanduser()
+    except RuntimeError as exc:  # ~nosuchuser
+        err_console.print(f"[red]x[/] {option} {path}: {exc}", highlight=False)
+        raise typer.Exit(2)
+    if path.exists() and not path.is_dir():
+        err_console.print(f"[red]x[/] {option} {path} is a file, not a folder; give a folder "
+                          "(it is created when missing)", highlight=False)
+        raise typer.Exit(2)
+    if any(p.exists() and not p.is_dir() for p in path.parents):
+        err_console.print(f"[red]x[/] {option} {path}: a part of the path is a file, not a "
+                          "folder", highlight=False)
+        raise typer.Exit(2)
+    return path
+
+
 def _load(case: str):
     from hmcore.case import load_case
 
     try:
         return load_case(case)
     except CaseError as exc:
-        err_console.print(f"[bold red]Case {case} is not valid[/] - {len(exc.problems)} problem(s):")
-        for p in exc.problems:
-            err_console.print(f"  [red]x[/] {p.where}\n      {p.what}" + (f"\n      fix: {p.fix}" if p.fix else ""),
-                              highlight=False)
+        print_problems(f"Case {case} is not valid", exc.problems)
         raise typer.Exit(2)
+
+
+def print_problems(title: str, problems) -> None:
+    """Every problem on stderr: where, what, fix (the user's text printed as it is, never read
+    as rich markup: '[[parameters]]' stays)."""
+    from rich.markup import escape
+
+    err_console.print(f"[bold red]{escape(title)}[/] - {len(problems)} problem(s):")
+    for p in problems:
+        err_console.print(f"  [red]x[/] {escape(p.where)}\n      {escape(p.what)}"
+                          + (f"\n      fix: {escape(p.fix)}" if p.fix else ""), highlight=False)
 
 
 def _num(v, digits=4) -> str:
@@ -139,6 +168,52 @@ def parse_sets(sets: list[str], names: list[str]) -> dict[str, float]:
 
 
 @app.command()
+def init(deck: Path = typer.Option(..., "--deck", help="The field's deck (.DATA)"),
+         out: Optional[Path] = typer.Option(None, "--out", help="Case file to write (default: "
+                                            "<deck name>.toml here); never overwritten"),
+         summary: Optional[Path] = typer.Option(None, "--summary", help="Take the measured data "
+                                                "from this summary file (.SMSPEC) instead of the "
+                                                "deck's WCONHIST/WCONINJH records"),
+         observed: Optional[Path] = typer.Option(None, "--observed", help="Use this observed CSV "
+                                                 "(well, days, quantity, value[, units]) as it is"),
+         name: Optional[str] = typer.Option(None, "--name", help="Case name (default: from the "
+                                            "deck's file name)")) -> None:
+    """Write a starting case for a deck: observed data from its history, default parameters."""
+    from hmcore.case_init import starting_case, write_starting_case
+
+    if summary is not None and observed is not None:
+        err_console.print("[red]x[/] give --summary or --observed, not both")
+        raise typer.Exit(2)
+    case_name_ = name or re.sub(r"[^A-Za-z0-9_.-]+", "_", deck.stem.lower())
+    out = out or Path(f"{case_name_}.toml")
+    try:
+        start = starting_case(deck, case_name_, observed, summary)
+        case_path, observed_path = write_starting_case(start, out, observed)
+    except CaseError as exc:
+        err_console.print(f"[bold red]Cannot start a case from {deck}[/] - "
+                          f"{len(exc.problems)} problem(s):")
+        for p in exc.problems:
+            err_console.print(f"  [red]x[/] {p.where}\n      {p.what}"
+                              + (f"\n      fix: {p.fix}" if p.fix else ""), highlight=False)
+        raise typer.Exit(2)
+    except FileExistsError as exc:
+        err_console.print(f"[red]x[/] {exc}")
+        raise typer.Exit(2)
+    kinds = start.wells_by_kind()
+    console.print(f"wrote [bold]{case_path}[/] ({len(start.parameters)} parameters on, "
+                  f"{len(start.optional)} more commented out)")
+    if observed is None:
+        counts = start.observed.groupby("quantity").size().to_dict()
+        console.print(f"wrote [bold]{observed_path}[/]: {len(start.observed)} rows {counts} "
+                      f"from {start.source}, in {start.info.unit_system} units")
+    console.print(f"  wells: {len(kinds['producer'])} producer(s), {len(kinds['injector'])} "
+                  f"injector(s); faults: {len(start.info.faults)}")
+    for why in start.skipped:
+        console.print(f"  [yellow]not used[/]: {why}", highlight=False)
+    console.print(f"next: hmflow check --case {case_path}")
+
+
+@app.command()
 def check(case: str = typer.Option("synthetic", "--case", help=CASE_HELP)) -> None:
     """Validate the case (deck, history, parameters); runs no simulation."""
     c = _load(case)
@@ -153,6 +228,19 @@ def check(case: str = typer.Option("synthetic", "--case", help=CASE_HELP)) -> No
                   f"{measured}" + (f", derived {derived}" if derived else ""))
     console.print(f"  fitting   days <= {c.history_end_days if c.history_end_days else 'end'}, "
                   f"tolerance {c.time_tolerance_days:g} d, misfit {c.misfit.variant}")
+    console.print(f"  units     {c.info.unit_system}: " + ", ".join(
+        f"{q} {deck_unit(q, c.info.unit_system)}" for q in sorted(set(obs.quantity))))
+    if "controlled" in obs and obs.controlled.any():
+        fixed = obs[obs.controlled].groupby("quantity").size().to_dict()
+        used = sorted(set(c.informative.quantity))
+        console.print(f"  control   history-mode wells fix {fixed} row(s) by their control "
+                      f"(WCONHIST/WCONINJH CMODE): left out of E, which uses {used}")
+    for warning in c.info.warnings:
+        console.print(f"  [yellow]warning[/] OPM Flow tolerates this and runs on: {warning}",
+                      highlight=False)
+    if c.info.history.skipped:
+        console.print(f"  [yellow]note[/] {len(c.info.history.skipped)} history record(s) not "
+                      "used: " + "; ".join(c.info.history.skipped[:5]))
     for p in c.space.parameters:
         console.print(f"  parameter {p.name:<12} {p.kind:<9} [{p.low:g}, {p.high:g}] {p.description}")
 
@@ -166,20 +254,30 @@ def evaluate(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                                                      "template like 'flow {deck} --output-dir={run_dir}'")) -> None:
     """Run one simulation and score it: writes OUT/metrics.json and OUT/responses.parquet."""
     from hmcore.evaluation import evaluate as run_one
+    from hmcore.evaluation import simulator_for
     from hmcore.report import metrics_document
     from hmcore.simulator import make_simulator
 
     c = _load(case)
+    if simulator:
+        from hmcore.validation import simulator_problems
+
+        bad = simulator_problems(simulator, "--simulator")
+        if bad:
+            print_problems(f"--simulator {simulator!r} cannot run", bad)
+            raise typer.Exit(2)
     values = parse_sets(set_, c.space.names)
     bounds = c.space.check_in_bounds(values)
     if bounds:
         console.print(f"[yellow]note[/]: {'; '.join(bounds)} (evaluated anyway)")
+    out = _folder("--out", out)
     if out.exists() and any(out.iterdir()):
         err_console.print(f"[red]x[/] {out} exists and is not empty; hmflow never overwrites results "
                           "(choose a new --out)")
         raise typer.Exit(2)
     out.mkdir(parents=True, exist_ok=True)
-    sim = make_simulator(simulator or c.simulator.backend, c.simulator.timeout_s)
+    sim = (make_simulator(simulator, c.simulator.timeout_s) if simulator
+           else simulator_for(c))
     ev = run_one(c, values, out / "run", sim)
     doc = metrics_document(ev)
     (out / "metrics.json").write_text(json.dumps(doc, indent=2))
@@ -233,21 +331,41 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                                                "(default CASE-AGENT-seedS; the same name resumes)"),
         task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
         dask_address: Optional[str] = typer.Option(None, "--dask-address", help=DASK_HELP),
+        fork: Optional[str] = typer.Option(None, "--fork", callback=_checked_campaign,
+                                           help="Start a new campaign FORK on the case as it "
+                                           "is now, recording that it comes from --campaign "
+                                           "(which is left untouched); for a model changed "
+                                           "since that campaign started"),
         verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Run a calibration campaign as a Prefect flow and print the best case and the tables."""
     prefect_environment(verbose)
     from storage import ArtifactStore, EvaluationJournal
 
+    storage = _folder("--storage", storage)
     c = _load(case)  # clear errors before any simulator time or Prefect start-up
+    workers = _fit_workers(workers, c.simulator.threads, task_runner)
     _check_agent(agent, budget, workers)
     _check_runner(task_runner)
+    if fork is not None:
+        _check_fork(fork, campaign, storage.resolve())
     _start_api()
     from flows.campaign import campaign_flow, default_campaign_name
 
     name = campaign or default_campaign_name(c.name, agent, seed)
     storage = storage.resolve()
+    forked_from = None
+    if fork is not None:
+        forked_from, name = campaign, fork
+    try:
+        from storage import refuse_links
+
+        refuse_links(storage, name)
+    except ValueError as exc:
+        err_console.print(f"[red]x[/] {exc}", highlight=False)
+        raise typer.Exit(2)
     console.print(f"campaign [bold]{name}[/]: case {c.name}, agent {agent}, budget {budget}, "
-                  f"workers {workers}, seed {seed}, storage {storage}")
+                  f"workers {workers}, seed {seed}, storage {storage}"
+                  + (f", forked from {forked_from}" if forked_from else ""))
     flow_fn = campaign_flow
     try:
         done = len(EvaluationJournal(ArtifactStore(storage), name).indices())
@@ -257,11 +375,41 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                    initial={"best": "-"}):
             result = flow_fn(case=str(case), agent=agent, budget=budget, workers=workers,
                              seed=seed, storage=str(storage), campaign=name,
-                             task_runner=task_runner, dask_address=dask_address)
+                             task_runner=task_runner, dask_address=dask_address,
+                             **({"forked_from": forked_from} if forked_from else {}))
     except (ValueError, _flow_refused()) as exc:
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
     _print_report(storage, result["campaign"], result)
+
+
+def _check_fork(fork: str, campaign: Optional[str], storage: Path) -> None:
+    """``--fork NEW`` needs the campaign it comes from (``--campaign OLD``, stored) and a new
+    name; exit 2 with one line otherwise, before Prefect starts."""
+    problem = None
+    if campaign is None:
+        problem = "--fork needs --campaign: the campaign the new one comes from"
+    elif fork == campaign:
+        problem = f"--fork {fork}: give a new campaign name, not the one it comes from"
+    elif not (storage / campaign / "campaign.json").is_file():
+        problem = f"--fork {fork}: there is no campaign '{campaign}' in {storage} to fork from"
+    if problem:
+        err_console.print(f"[red]x[/] {problem}", highlight=False)
+        raise typer.Exit(2)
+
+
+def _fit_workers(workers: int, threads: int, task_runner: str) -> int:
+    """Local runs: at most as many simulator threads at once as the machine has cores."""
+    import os
+
+    cores = os.cpu_count() or 1
+    if task_runner != "threads" or workers * threads <= cores:
+        return workers
+    fitted = max(1, cores // threads)
+    console.print(f"[yellow]note[/]: {workers} workers x {threads} threads per run would "
+                  f"need {workers * threads} cores, this machine has {cores}: {fitted} "
+                  f"worker(s)")
+    return fitted
 
 
 def _check_agent(agent: str, budget: int, workers: int) -> None:
@@ -464,7 +612,9 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     """Equal-budget benchmark: every method x seed is an ordinary campaign (a stopped benchmark
     resumes where it was), then one table, Parquet files and a best-so-far plot."""
     prefect_environment(verbose)
+    storage = _folder("--storage", storage)
     c = _load(case)
+    workers = _fit_workers(workers, c.simulator.threads, task_runner)
     chosen = list(AGENTS) if methods == "all" else [m.strip() for m in methods.split(",")
                                                     if m.strip()]
     unknown = [m for m in chosen if m not in AGENTS]
@@ -593,6 +743,11 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
     console.print(f"next: prefect worker start --pool {pool}", highlight=False)
 
 
+KINDS_HELP = ("Families of candidate extensions to search, comma-separated (default all): "
+              "well_skin, regional_permeability, layer_permeability, vertical_permeability, "
+              "aquifer_strength, fault_transmissibility, relative_permeability")
+
+
 @app.command()
 def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP + " Default: "
                                                  "the --from-campaign's case, else 'synthetic'."),
@@ -610,13 +765,15 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
              task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
              dask_address: Optional[str] = typer.Option(None, "--dask-address",
                                                         help=DASK_HELP),
+             kinds: Optional[str] = typer.Option(None, "--kinds", help=KINDS_HELP),
              verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Find what the calibrated model gets wrong, name the cause, extend the model, measure the
     gain on the fitted and the held-back history; writes diagnosis.json (path printed)."""
     prefect_environment(verbose)
     _check_runner(task_runner)
+    kind_list = _diagnosis_kinds(kinds, task_runner, dask_address)
     if case:
-        _load(case)  # clear errors before Prefect starts
+        _diagnosis_budget(_load(case), budget, kind_list, from_campaign is not None)
     _start_api()
     from flows.diagnose import (campaign_start, default_campaign_name, diagnose_flow,
                                 print_diagnosis)
@@ -634,6 +791,7 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
         campaign = campaign or from_campaign  # the diagnosis goes into that campaign's report
     case = case or "synthetic"
     c = _load(case)  # clear errors before any simulator time or Prefect start-up
+    _diagnosis_budget(c, budget, kind_list, calibrated is not None)
     storage = storage.resolve()
     # what flows.diagnose.diagnose_command does, with a progress display until the flow ends
     flow_fn = diagnose_flow
@@ -643,11 +801,49 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
                    total=budget, initial={"step": "-"}):
             result = flow_fn(case=str(case), storage=str(storage), budget=budget,
                              campaign=campaign, workers=workers, calibrated=calibrated,
-                             task_runner=task_runner, dask_address=dask_address)
+                             task_runner=task_runner, dask_address=dask_address,
+                             kinds=list(kind_list) if kind_list else None)
     except (ValueError, _flow_refused()) as exc:
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
     print_diagnosis(result, console)
+
+
+def _diagnosis_kinds(kinds: Optional[str], task_runner: str,
+                     dask_address: Optional[str]) -> Optional[tuple[str, ...]]:
+    """``--kinds`` as the families it names (None: all); exit 2 with every problem of the
+    diagnose options that need no case (an unknown kind, with a suggestion)."""
+    from hmcore.diagnosis.settings import parse_kinds
+
+    problems, names = [], None
+    if kinds is not None:
+        try:
+            names = parse_kinds(kinds, "--kinds")
+        except ValueError as exc:
+            problems += str(exc).split("; ")
+    if dask_address and task_runner != "dask":
+        problems.append("--dask-address needs --task-runner dask")
+    if problems:
+        for p_ in problems:
+            err_console.print(f"[red]x[/] {p_}", highlight=False)
+        raise typer.Exit(2)
+    return names
+
+
+def _diagnosis_budget(case, budget: Optional[int], kinds: Optional[tuple[str, ...]],
+                      given: bool) -> None:
+    """Exit 2 with one line when ``--budget`` cannot cover the diagnosis's minimum (see
+    :func:`hmcore.diagnosis.workflow.minimum_runs`), before any simulator time."""
+    if budget is None:
+        return
+    from hmcore.diagnosis.settings import DiagnosisSettings
+    from hmcore.diagnosis.workflow import budget_problem
+
+    settings = DiagnosisSettings(budget=budget, **({"kinds": kinds} if kinds else {}))
+    problem = budget_problem(case, settings, given, "--budget")
+    if problem:
+        err_console.print(f"[red]x[/] {problem}", highlight=False, soft_wrap=True)
+        raise typer.Exit(2)
 
 
 @app.command()

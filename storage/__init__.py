@@ -6,15 +6,18 @@ A plain library: it imports neither Prefect nor hmcore/tasks/flows.
 from .journal import EvaluationJournal, JournalConflictError
 from .jsonable import canonical_json, sha256_json, to_jsonable
 from .provenance import code_version
-from .store import ArtifactStore, ArtifactVersion, validate_name
+from .store import (ArtifactStore, ArtifactVersion, LinkRefusedError, refuse_links,
+                    validate_name)
 
 __all__ = [
     "ArtifactStore",
     "ArtifactVersion",
     "EvaluationJournal",
     "JournalConflictError",
+    "LinkRefusedError",
     "canonical_json",
     "code_version",
+    "refuse_links",
     "sha256_json",
     "to_jsonable",
     "validate_name",

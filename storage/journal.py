@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from .jsonable import canonical_json, to_jsonable
-from .store import JOURNAL_STEP, ArtifactStore, validate_name
+from .store import JOURNAL_STEP, ArtifactStore, refuse_links, validate_name
 
 _RECORD_RE = re.compile(r"(\d{6,})\.json")
 
@@ -71,6 +71,7 @@ class EvaluationJournal:
             raise JournalConflictError(
                 f"evaluation {index} is already recorded in {target} with different content "
                 f"(differs in {keys}); records are write-once, use a new index")
+        refuse_links(self.store.root, self.campaign, JOURNAL_STEP)
         self.directory.mkdir(parents=True, exist_ok=True)
         tmp = self.directory / f".tmp-{uuid.uuid4().hex}.json"
         try:

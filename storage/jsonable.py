@@ -1,8 +1,9 @@
 """Plain-JSON conversion of Python, NumPy and pandas values, and canonical-JSON hashing.
 
-Non-finite floats (``NaN``, ``+inf``, ``-inf``) are stored as ``null``: JSON has no spelling for
-them. They read back as ``None`` (``NaN`` once loaded into a numeric DataFrame column), so a
-stored ``inf`` does not come back as ``inf``.
+The one JSON encoder of hmflow: the store, the journal, the reports and the diagnosis all
+write through :func:`to_jsonable`. Non-finite floats (``NaN``, ``+inf``, ``-inf``) are stored
+as ``null``: JSON has no spelling for them. They read back as ``None`` (``NaN`` once loaded
+into a numeric DataFrame column), so a stored ``inf`` does not come back as ``inf``.
 """
 
 from __future__ import annotations
@@ -12,26 +13,30 @@ import json
 import math
 from collections.abc import Mapping
 from datetime import date, datetime
+from enum import Enum
 from pathlib import PurePath
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-SUPPORTED = ("None, bool, int, float, str, list, tuple, dict with str keys, numpy scalars and "
-             "arrays, datetime/date, pathlib paths")
+SUPPORTED = ("None, bool, int, float, str, enums (their value), list, tuple, dict with str "
+             "keys, numpy scalars and arrays, datetime/date, pathlib paths")
 
 
 def to_jsonable(value: Any, where: str = "value") -> Any:
     """Return ``value`` as plain JSON data (dict, list, str, int, float, bool, None).
 
-    NumPy scalars and arrays become Python values and lists, tuples become lists, datetimes
-    become ISO strings, paths become strings, and NaN/inf/NaT/pd.NA become ``None``.
+    NumPy scalars and arrays become Python values and lists, tuples become lists, enums their
+    value, datetimes become ISO strings, paths become strings, and NaN/inf/NaT/pd.NA become
+    ``None``.
     ``where`` names the value in error messages. Raises TypeError for anything else (sets
     included: they have no order) and for dict keys that are not strings.
     """
     if value is None or value is pd.NA or value is pd.NaT:
         return None
+    if isinstance(value, Enum):  # before str: a str-valued enum is a str too
+        return to_jsonable(value.value, where)
     if isinstance(value, bool):
         return value
     if isinstance(value, str):

@@ -9,6 +9,10 @@ A version is written in a hidden temp dir inside the step folder and published w
 ``os.rename``, so readers never see a half-written version and a crash leaves at most a
 ``.tmp-*`` dir behind (ignored by every listing). Existing versions are never overwritten or
 deleted. ``ROOT/<campaign>/evaluations/`` is reserved for :class:`storage.EvaluationJournal`.
+
+The store never leaves its root: campaign and step names are checked before use (no ``/``,
+no ``..``), and no symbolic link below the root is followed for writing (a linked campaign or
+step folder is refused with :class:`LinkRefusedError`); the root itself may be a link.
 """
 
 from __future__ import annotations
@@ -39,6 +43,26 @@ _VERSION_RE = re.compile(r"v(\d{4,})")
 _MAX_PUBLISH_ATTEMPTS = 1000
 
 FileContent = Union[bytes, str, pd.DataFrame, Mapping[str, Any]]
+
+
+class LinkRefusedError(ValueError):
+    """A folder the store would write into is a symbolic link (it could lead outside the root)."""
+
+
+def refuse_links(root: Path, *names: str) -> Path:
+    """``root/names...`` after checking that no existing part below ``root`` is a symbolic link
+    (nor anything but a folder); LinkRefusedError naming the part otherwise."""
+    path = Path(root)
+    for name in names:
+        path = path / name
+        if path.is_symlink():
+            raise LinkRefusedError(f"{path} is a symbolic link (to {os.readlink(path)}); the "
+                                   f"artifact store never writes through a link, which could "
+                                   f"lead outside {root}. Replace it by a real folder")
+        if path.exists() and not path.is_dir():
+            raise LinkRefusedError(f"{path} is not a folder; the artifact store needs a folder "
+                                   "there. Move the file away")
+    return path
 
 
 def validate_name(kind: str, value: object) -> str:
@@ -151,6 +175,7 @@ class ArtifactStore:
             raise ValueError(f"code_version must be a non-empty string, got {code_version!r}")
         inputs = to_jsonable(inputs, "inputs")
         inputs_hash = sha256_json(inputs)
+        refuse_links(self.root, campaign, step)
 
         latest = self.latest(campaign, step)
         if (latest is not None and latest.manifest.get("inputs_hash") == inputs_hash

@@ -13,7 +13,7 @@ from prefect.cache_policies import NO_CACHE
 from hmcore.case import Case
 from hmcore.deck import prepare_run_deck
 from hmcore.report import to_jsonable
-from storage import ArtifactStore, ArtifactVersion, code_version
+from storage import ArtifactStore, ArtifactVersion, code_version, refuse_links
 
 
 def file_sha256(path: Path) -> str:
@@ -56,6 +56,7 @@ def prepare_deck(case: Case, case_ref: str, store_root: str, campaign: str) -> A
     the case was given by this time) by the same code, so that a campaign stays bound to one
     case artifact (a diagnosis ``--from-campaign`` names the case by its absolute path)."""
     store = ArtifactStore(store_root)
+    refuse_links(store.root, campaign)  # never write through a linked campaign folder
     latest = store.latest(campaign, "case")
     if (latest is not None and latest.manifest.get("code_version") == code_version()
             and not fingerprint_differences(latest, case) and not latest.verify()):

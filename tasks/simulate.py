@@ -13,9 +13,8 @@ from prefect.cache_policies import NO_CACHE
 from tasks.naming import simulate_run_name
 from hmcore.calibration import Job
 from hmcore.case import Case
-from hmcore.evaluation import evaluate
+from hmcore.evaluation import evaluate, simulator_for
 from hmcore.report import to_jsonable
-from hmcore.simulator import make_simulator
 from storage import ArtifactStore, EvaluationJournal
 
 
@@ -52,7 +51,7 @@ def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: P
     Returns the evaluation and the attempt number."""
     from prefect.runtime import task_run
 
-    simulator = make_simulator(case.simulator.backend, case.simulator.timeout_s)
+    simulator = simulator_for(case)
     ev = evaluate(case, values, run_dir, simulator)
     attempt = int(getattr(task_run, "run_count", 1) or 1)
     if ev.failure is not None and ev.failure.transient and attempt <= 2:

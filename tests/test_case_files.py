@@ -58,3 +58,24 @@ def test_resume_on_a_changed_include_is_refused_with_the_file_named(tmp_path):
                             storage=str(store), campaign="inc", return_state=True)
     assert refused.is_failed() and f"{inc} changed" in refused.message, refused.message
     assert sorted((store / "inc" / "runs").iterdir()) == runs  # nothing simulated
+    # --fork: a new campaign on the changed model, recording where it comes from; the old
+    # campaign is left exactly as it was
+    import json
+
+    old = {p: p.read_bytes() for p in (store / "inc").rglob("*") if p.is_file()}
+    assert "--fork" in refused.message
+    forked = campaign_flow(case=str(case_file), agent="random", budget=1, workers=1,
+                           storage=str(store), campaign="inc-fork", forked_from="inc",
+                           return_state=True)
+    assert forked.is_completed(), forked.message
+    settings = json.loads((store / "inc-fork" / "campaign.json").read_text())
+    before = json.loads((store / "inc" / "campaign.json").read_text())
+    assert settings["forked_from"] == {"campaign": "inc", "case_artifact":
+                                       before["case_artifact"], "deck_files": before["deck_files"]}
+    assert settings["deck_files"][str(inc)] != before["deck_files"][str(inc)]
+    assert {p: p.read_bytes() for p in (store / "inc").rglob("*") if p.is_file()} == old
+    again = campaign_flow(case=str(case_file), agent="random", budget=2, workers=1,
+                          storage=str(store), campaign="inc-fork", forked_from="inc",
+                          return_state=True)  # the same fork resumes
+    assert again.is_completed(), again.message
+    assert len(list((store / "inc-fork" / "evaluations").glob("*.json"))) == 2

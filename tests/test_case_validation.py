@@ -418,3 +418,125 @@ def test_observed_quantity_missing_from_the_summary_section_is_reported(tmp_path
     deck.write_text(text.replace("\nWBHP\n/\n", "\n"))
     probs = problems_of(make_case(tmp_path, deck=deck))  # GOOD_ROWS hold WBHP rows
     one_problem_matching(probs, where=r"observed\.csv|PUNQS3\.DATA", what=r"WBHP")
+
+
+# ----------------------------------------------------------------------------- issue 16
+def _aquct(item: int = 4, match: str | None = None, kind: str = "item_multiply",
+           keyword: str = "AQUCT") -> str:
+    return (f'[[parameters]]\nname = "aq"\nkind = "{kind}"\nkeywords = ["{keyword}"]\n'
+            f'item = {item}\nlow = 0.5\nhigh = 2.0\n' + (f'match = "{match}"\n' if match else ""))
+
+
+def test_history_end_before_the_first_observation_is_refused(tmp_path):
+    probs = problems_of(make_case(tmp_path, history_end_days=0.5))
+    p = one_problem_matching(probs, where=r"key 'case\.history_end_days'",
+                             what=r"before the first observation \(day 1\.01\).*no observed row")
+    assert "1.01" in p.fix
+
+
+@pytest.mark.parametrize("value, says", [("true", "valid number"), ("inf", "finite number"),
+                                         ("nan", "finite number"), ('"30"', "valid number")])
+def test_time_tolerance_must_be_a_finite_number(tmp_path, value, says):
+    probs = problems_of(make_case(tmp_path, extra_case=f"time_tolerance_days = {value}"))
+    one_problem_matching(probs, where=r"key 'case\.time_tolerance_days'", what=says)
+
+
+def test_a_mistyped_key_gets_did_you_mean(tmp_path):
+    probs = problems_of(make_case(tmp_path, extra_case="histroy_end_day = 100",
+                                  extra="[simulator]\ntimout_s = 5"))
+    assert "did you mean 'history_end_days'" in one_problem_matching(
+        probs, where=r"case\.histroy_end_day'", what=r"[Ee]xtra").fix
+    assert "did you mean 'timeout_s'" in one_problem_matching(
+        probs, where=r"simulator\.timout_s'", what=r"[Ee]xtra").fix
+
+
+@pytest.mark.parametrize("backend, says", [
+    ("nosuch-simulator {deck}", r"program 'nosuch-simulator' is not found"),
+    ("true {deck} {rundir}", r"unknown placeholder \{rundir\}.*did you mean 'run_dir'"),
+    ("true '{deck}", r"cannot be split into words"),
+    ("true --out={run_dir}", r"does not name the deck"),
+    ("bin/flow {deck}", r"relative path"),
+])
+def test_a_simulator_command_that_cannot_run_is_refused(tmp_path, backend, says):
+    import json
+
+    probs = problems_of(make_case(tmp_path, extra=f"[simulator]\nbackend = {json.dumps(backend)}"))
+    one_problem_matching(probs, where=r"key 'simulator\.backend'", what=says)
+
+
+def test_empty_and_duplicate_parameter_lists_are_problems_not_tracebacks(tmp_path):
+    case = make_case(tmp_path)
+    case.write_text("parameters = []\n" + case.read_text())
+    one_problem_matching(problems_of(case), where=r"key 'parameters'", what=r"list is empty")
+    twice = '[[parameters]]\nname = "s"\nkind = "skin"\nlow = 0\nhigh = 5\n'
+    probs = problems_of(make_case(tmp_path, extra=twice + twice))
+    one_problem_matching(probs, where=r"key 'parameters'", what=r"\['s'\] are given more")
+
+
+def test_item_multiply_on_aquct_is_checked_record_by_record(tmp_path):
+    assert load_case(make_case(tmp_path, extra=_aquct(4))).space.names == ["aq"]
+    one_problem_matching(problems_of(make_case(tmp_path, extra=_aquct(4, match="7"))),
+                         where=r"\[\[parameters\]\] 'aq'",
+                         what=r"match = '7' selects no AQUCT record.*\['1', '2'\]")
+    one_problem_matching(problems_of(make_case(tmp_path, extra=_aquct(12))),
+                         where=r"'aq'", what=r"11 item\(s\), no item 12")
+    one_problem_matching(problems_of(make_case(tmp_path, extra=_aquct(4, keyword="AQUFETP"))),
+                         where=r"'aq'", what=r"no AQUFETP keyword")
+
+
+def test_relperm_on_a_column_that_is_no_relative_permeability_is_refused(tmp_path):
+    probs = problems_of(make_case(tmp_path, extra=_aquct(4, kind="relperm", keyword="SWOF")))
+    one_problem_matching(probs, where=r"parameters\.0", what=r"item 4 of SWOF is not a "
+                         r"relative permeability column; use item = 2 or 3")
+
+
+def test_a_parameter_that_changes_nothing_in_the_deck_is_refused(tmp_path):
+    extra = ('[[parameters]]\nname = "skin_top"\nkind = "skin"\nwells = ["PRO-1"]\n'
+             'layers = [1]\nlow = 0\nhigh = 5\n')  # PRO-1 has no connection in layer 1
+    probs = problems_of(make_case(tmp_path, extra=extra))
+    one_problem_matching(probs, where=r"'skin_top'", what=r"deck text is the same at low=0 "
+                         r"and high=5: this skin parameter changes nothing")
+
+
+def test_an_include_cycle_is_refused_at_once(tmp_path):
+    deck = copy_punq_deck(tmp_path / "deck")
+    text = deck.read_text()
+    grid_inc = tmp_path / "deck" / "loop.inc"
+    grid_inc.write_text("INCLUDE\n 'PUNQS3.DATA' /\n")
+    deck.write_text(text.replace("\nPROPS", "\nINCLUDE\n 'loop.inc' /\n\nPROPS", 1))
+    probs = problems_of(make_case(tmp_path, deck=deck))
+    one_problem_matching(probs, where=re.escape(str(grid_inc)) + " line 1",
+                         what=r"makes a cycle \(PUNQS3\.DATA -> loop\.inc -> PUNQS3\.DATA\)")
+
+
+@pytest.mark.parametrize("row, says", [
+    ("PRO-1,31.0,WBHP,223.9,abc,1", r"sigma 'abc' is not a number"),
+    ("PRO-1,31.0,WBHP,223.9,inf,1", r"sigma=inf is not finite"),
+    ("PRO-1,31.0,WBHP,223.9,None,1", r"sigma 'None' is not a number"),  # found by hypothesis
+    ("PRO-1,31.0,WBHP,223.9,,maybe", r"flowing 'maybe' is not a yes/no value"),
+    (",31.0,WBHP,223.9,,1", r"the well is empty"),
+    ("PRO1,31.0,WBHP,223.9,,1", r"unknown well 'PRO1' \(did you mean 'PRO-1'\?\)"),
+    ("PRO-1,31.0,WBHPP,223.9,,1", r"unknown quantity 'WBHPP' \(did you mean 'WBHP'\?\)"),
+])
+def test_observed_cells_that_are_not_what_they_must_be(tmp_path, row, says):
+    rows = [r + ",,1" for r in GOOD_ROWS] + [row]
+    write_csv(tmp_path / "observed.csv", rows, header=HEADER + ",sigma,flowing")
+    case = write_case_toml(tmp_path / "case.toml", deck=PUNQ_DECK,
+                           observed=tmp_path / "observed.csv", name="t",
+                           history_end_days=None)
+    one_problem_matching(problems_of(case), where=rf"observed\.csv line {len(rows) + 1}$",
+                         what=says)
+
+
+def test_user_errors_in_paths_are_problems_not_tracebacks(tmp_path):
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"\xff\xfe\x00[case]\n")
+    one_problem_matching(problems_of(binary), where=r"binary\.toml", what=r"not a text file")
+    with pytest.raises(CaseError, match="null byte"):
+        load_case("a\x00b.toml")
+    with pytest.raises(CaseError, match="folder, not a case file"):
+        load_case(tmp_path)
+    case = make_case(tmp_path)
+    case.write_text(case.read_text().replace(str(PUNQ_DECK), "~nosuchuser/PUNQS3.DATA"))
+    one_problem_matching(problems_of(case), where=r"key 'case\.deck'",
+                         what=r"cannot be expanded")

@@ -115,7 +115,8 @@ def assert_found_where_visible(doc: dict, effect, case_dir: Path) -> None:
     names a cause (a wrong one is a failure), and where
     the held-back signal is strong enough to lift the held-back misfit beyond the noise line,
     the verdict must say that the held-back history is missed."""
-    from hmcore.diagnosis.diagnose import DiagnosisSettings, heldout_noise_line
+    from hmcore.diagnosis.decision import heldout_noise_line
+    from hmcore.diagnosis.settings import DiagnosisSettings
 
     from hmcore.diagnosis.hidden import judge
 

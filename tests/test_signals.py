@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -80,3 +81,81 @@ def test_kill_9_of_hmflow_leaves_no_server_and_no_simulator(tmp_path):
                            cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert rerun.returncode == 0, rerun.stdout[-3000:] + rerun.stderr[-3000:]
     assert sorted(int(p.stem) for p in journal.glob("*.json")) == list(range(done + 1))
+
+
+def _orphans(store) -> list[str]:
+    """Processes still working on ``store`` (a simulator runs in its own process group, with
+    its deck under the store)."""
+    out = subprocess.run(["ps", "-eww", "-o", "pid=,args="], capture_output=True,
+                         text=True).stdout
+    return [line for line in out.splitlines() if str(store) in line and "ps -eww" not in line]
+
+
+@pytest.mark.opm
+@pytest.mark.slow
+def test_random_kill_9_and_resume_of_a_real_campaign_loses_and_repeats_nothing(
+        tmp_path, punq_case_toml):
+    """PUNQ-S3 with real OPM Flow, 8 calls on 2 workers: `kill -9` of hmflow at random
+    moments (seeded), the same command again after each kill, then to the end. Exactly the
+    budgeted calls are journaled, each once, no journaled call simulated again, and after
+    every kill nothing hmflow started is alive (its process group: the temporary Prefect
+    server; the simulators, found by the store path in their command line)."""
+    import numpy as np
+
+    rng = np.random.default_rng(16)
+    store = tmp_path / "store"
+    args = [sys.executable, "-m", "hmflow.cli", "run", "--case", str(punq_case_toml),
+            "--agent", "random", "--budget", "8", "--workers", "2", "--campaign", "rk",
+            "--storage", str(store)]
+    journal = store / "rk" / "evaluations"
+    kills, timings = [], []
+
+    def progress(campaign: str) -> int:  # runs started and calls journaled
+        return (len(list((store / campaign / "runs").glob("*")))
+                + len(list((store / campaign / "evaluations").glob("*.json"))))
+
+    # the moments: during the reference runs, then once 3 random numbers of calls (of 1..7)
+    # are journaled, each 0-8 s later (in the next calls' simulations or their journaling)
+    targets = [None] + sorted(int(k) for k in rng.choice(np.arange(1, 8), 3, replace=False))
+    for attempt, target in enumerate(targets):
+        log = tmp_path / f"hmflow-{attempt}.log"
+        started = time.time()
+        proc = subprocess.Popen(args, cwd=tmp_path, stdout=log.open("w"),
+                                stderr=subprocess.STDOUT, start_new_session=True)
+        wait_for = float(rng.uniform(0.0, 8.0))
+        before, moved = progress("rk-reference"), None
+        deadline = time.time() + 400
+        while time.time() < deadline and proc.poll() is None:
+            if moved is None and (progress("rk-reference") > before if target is None
+                                  else len(list(journal.glob("*.json"))) >= target):
+                moved = time.time()
+            if moved is not None and time.time() - moved >= wait_for:
+                break
+            time.sleep(0.1)
+        if proc.poll() is not None:  # it finished before the moment came
+            assert proc.returncode == 0, log.read_text()[-3000:]
+            break
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+        kills.append((round(time.time() - started, 1), len(list(journal.glob("*.json"))),
+                      len(list((store / "rk" / "runs").glob("*")))))
+        deadline = time.time() + 30
+        while time.time() < deadline and (_alive(proc.pid) or _orphans(store)):
+            time.sleep(0.5)
+        assert not _alive(proc.pid), _alive(proc.pid)  # no temporary server left
+        assert not _orphans(store), _orphans(store)  # no simulator left
+        timings.append(round(time.time() - started, 1))
+    assert len(kills) >= 2, (kills, log.read_text()[-3000:])
+    started = time.time()
+    final = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=900)
+    timings.append(round(time.time() - started, 1))
+    assert final.returncode == 0, final.stdout[-3000:] + final.stderr[-3000:]
+    rows = [json.loads(p.read_text()) for p in sorted(journal.glob("*.json"))]
+    assert [r["index"] for r in rows] == list(range(8)), [r["index"] for r in rows]
+    for r in rows:  # the journaled run is the last one of its call: never simulated again
+        runs = sorted((store / "rk" / "runs").glob(f"{r['index']:06d}*"),
+                      key=lambda p: int(p.name.partition(".")[2] or 1))
+        assert runs and Path(r["run_dir"]).name == runs[-1].name, (r["run_dir"], runs)
+    assert not _orphans(store)
+    print(f"kills (s after start, calls journaled, call runs started): {kills}; "
+          f"seconds per attempt {timings}")

@@ -526,3 +526,45 @@ def test_journal_get_returns_one_record_or_none(tmp_path):
     assert j.get(3) is None
     j.record(3, {"E": 0.5})
     assert j.get(3) == {"E": 0.5, "index": 3} and j.get(4) is None
+
+
+# --- links: the store never writes through one ----------------------------------------------
+
+@pytest.mark.parametrize("linked", ["campaign", "step", "journal"])
+def test_a_linked_folder_is_refused_and_nothing_is_written_through_it(tmp_path, linked):
+    from storage import LinkRefusedError
+
+    root, outside = tmp_path / "store", tmp_path / "outside"
+    root.mkdir()
+    outside.mkdir()
+    link = {"campaign": root / "c", "step": root / "c" / "s",
+            "journal": root / "c" / "evaluations"}[linked]
+    link.parent.mkdir(parents=True, exist_ok=True)
+    link.symlink_to(outside, target_is_directory=True)
+    store = ArtifactStore(root)
+    with pytest.raises(LinkRefusedError, match="symbolic link"):
+        if linked == "journal":
+            EvaluationJournal(store, "c").record(0, {"E": 1.0})
+        else:
+            store.put("c", "s", {"a": 1}, write_text("x"), CV)
+    if linked == "campaign":  # the journal of a linked campaign is refused as well
+        with pytest.raises(LinkRefusedError):
+            EvaluationJournal(store, "c").record(0, {"E": 1.0})
+    assert list(outside.iterdir()) == []  # nothing written outside the root
+
+
+def test_a_file_where_a_campaign_folder_belongs_is_refused(tmp_path):
+    from storage import LinkRefusedError
+
+    (tmp_path / "c").write_text("not a folder")
+    with pytest.raises(LinkRefusedError, match="not a folder"):
+        ArtifactStore(tmp_path).put("c", "s", {}, write_text("x"), CV)
+
+
+def test_a_linked_root_is_allowed(tmp_path):
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "root").symlink_to(real, target_is_directory=True)
+    version = ArtifactStore(tmp_path / "root").put("c", "s", {}, write_text("x"), CV)
+    assert (real / "c" / "s" / "v0001" / "out.txt").read_text() == "x"
+    assert version.version == 1

@@ -28,7 +28,7 @@ early point) and ended at 1.40x (best at call 94), so the default stayed the fir
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Literal
 
 import gymnasium as gym
@@ -92,9 +92,6 @@ class SACProposer:
             from scipy.stats import qmc
 
             self._start = qmc.Sobol(dim, scramble=True, seed=np.random.default_rng([seed, 1]))
-
-    def describe(self) -> dict:
-        return {"agent": self.name, "seed": self.seed, **asdict(self.settings)}
 
     def ask(self, n: int) -> list[Proposal]:
         obs = np.stack([self.lanes.get(i) for i in range(n)])

@@ -1,17 +1,29 @@
 """Diagnosis of a calibrated case: residuals beyond noise, candidate model extensions, their
 attribution by a score test, warm-started recalibration and the measured gain.
 
+One job per module: :mod:`~hmcore.diagnosis.settings` (the knobs, ``--kinds``),
+:mod:`~hmcore.diagnosis.residuals` (noise and whitened residuals),
+:mod:`~hmcore.diagnosis.extensions` (the candidate library),
+:mod:`~hmcore.diagnosis.attribution` (the score test), :mod:`~hmcore.diagnosis.screening`
+(ranking the candidates), :mod:`~hmcore.diagnosis.recalibrate` (bounded Levenberg-Marquardt),
+:mod:`~hmcore.diagnosis.refit` (start points and restarts of the extended models),
+:mod:`~hmcore.diagnosis.decision` (accept or veto, the ranked causes),
+:mod:`~hmcore.diagnosis.workflow` (the steps, the budget), :mod:`~hmcore.diagnosis.report`
+and :mod:`~hmcore.diagnosis.hidden` (hidden-effect test cases).
+
 Free of Prefect: the simulator is reached only through an injected ``evaluate_batch``.
 """
 
 from hmcore.diagnosis.attribution import Score, projector_basis, score_test
-from hmcore.diagnosis.diagnose import (Diagnosis, DiagnosisSettings, diagnose,
-                                       local_evaluator)
 from hmcore.diagnosis.extensions import KINDS, Candidate, build_candidates, extended_space
 from hmcore.diagnosis.recalibrate import Coordinates, LevenbergMarquardt, LMSettings, run_lockstep
 from hmcore.diagnosis.residuals import ObservationSet, analyse_residuals, estimate_noise
+from hmcore.diagnosis.settings import DiagnosisSettings, parse_kinds
+from hmcore.diagnosis.workflow import (Diagnosis, budget_problem, diagnose, local_evaluator,
+                                       minimum_runs)
 
 __all__ = ["KINDS", "Candidate", "Coordinates", "Diagnosis", "DiagnosisSettings",
            "LMSettings", "LevenbergMarquardt", "ObservationSet", "Score", "analyse_residuals",
-           "build_candidates", "diagnose", "estimate_noise", "extended_space", "local_evaluator",
-           "projector_basis", "run_lockstep", "score_test"]
+           "budget_problem", "build_candidates", "diagnose", "estimate_noise", "extended_space",
+           "local_evaluator", "minimum_runs", "parse_kinds", "projector_basis", "run_lockstep",
+           "score_test"]

@@ -74,8 +74,3 @@ def score_test(r: np.ndarray, j: np.ndarray, Q: np.ndarray | None = None,
     t = float(np.clip(t_free, *step_bounds))
     reduction = max(rr - float((r + t * j) @ (r + t * j)), 0.0)
     return Score(reduction / rr, reduction, t, t_free, float(np.sqrt(jj)))
-
-
-def rank(scores: dict[str, Score]) -> list[str]:
-    """Candidate ids by chi2 (the SSR a linear step removes), largest first."""
-    return sorted(scores, key=lambda k: (-scores[k].chi2, k))

@@ -34,6 +34,7 @@ import numpy as np
 from hmcore.deck_info import DeckInfo
 from hmcore.eclipse_lexer import expand_repeats, include_target, records, split_blocks
 from hmcore.parameters import Parameter, ParameterSpace
+from hmcore.results import natural_key
 
 KINDS = ("well_skin", "regional_permeability", "layer_permeability", "vertical_permeability",
          "aquifer_strength", "fault_transmissibility", "relative_permeability")
@@ -160,7 +161,7 @@ def _has_global(space: ParameterSpace, keyword: str) -> bool:
 
 def well_skin(info: DeckInfo, space: ParameterSpace, values: dict[str, float]) -> list[Candidate]:
     out = []
-    for well in sorted(info.producers, key=_natural):
+    for well in sorted(info.producers, key=natural_key):
         s0 = current_skin(well, space, values, info)
         lo, hi = WELL_SKIN_BOUNDS
         lo, hi = min(lo, s0 - 1.0), max(hi, s0 + 1.0)
@@ -178,7 +179,7 @@ def regional_permeability(info: DeckInfo, space: ParameterSpace,
     nx, ny, nz = info.dims
     h = REGION_HALF_WIDTH
     out = []
-    for well in sorted(info.producers, key=_natural):
+    for well in sorted(info.producers, key=natural_key):
         i, j = well_column(info, well)
         box = (max(1, i - h), min(nx, i + h), max(1, j - h), min(ny, j + h), 1, nz)
         p = Parameter(name=f"perm_region_{_slug(well)}", kind="multiply",
@@ -199,7 +200,7 @@ def layer_permeability(info: DeckInfo, space: ParameterSpace,
     nx, ny, nz = info.dims
     out = []
     for k in range(1, nz + 1):
-        wells = tuple(w for w in sorted(info.producers, key=_natural)
+        wells = tuple(w for w in sorted(info.producers, key=natural_key)
                       if any(c[2] == k for c in info.wells[w].connections))
         p = Parameter(name=f"perm_layer{k}", kind="multiply", keywords=("PERMX", "PERMY"),
                       box=(1, nx, 1, ny, k, k), low=PERM_BOUNDS[0], high=PERM_BOUNDS[1],
@@ -283,9 +284,9 @@ def fault_transmissibility(info: DeckInfo, space: ParameterSpace,
             else:
                 box = (1, nx, p0, p0, 1, nz)
             side_a = sorted([w for w, c in cols.items() if (c[0] if axis == "i" else c[1]) <= p0],
-                            key=_natural)
+                            key=natural_key)
             side_b = sorted([w for w, c in cols.items() if (c[0] if axis == "i" else c[1]) > p0],
-                            key=_natural)
+                            key=natural_key)
             words = ("west", "east") if axis == "i" else ("south", "north")
             p = Parameter(name=f"fault_{axis}{p0}", kind="multiply", keywords=(keyword,), box=box,
                           low=FAULT_BOUNDS[0], high=FAULT_BOUNDS[1],
@@ -352,25 +353,5 @@ def extended_space(space: ParameterSpace, candidates: list[Candidate]) -> Parame
     return ParameterSpace(parameters=tuple(space.parameters) + tuple(c.parameter for c in candidates))
 
 
-def candidate_for_parameter(parameter: Parameter, info: DeckInfo, space: ParameterSpace
-                            ) -> Candidate | None:
-    """The library candidate whose parameter acts like ``parameter`` (same kind, keywords, box,
-    wells, layers, item, match, mode), e.g. to name a hidden effect; None when none does."""
-    def sig(p: Parameter) -> tuple:
-        return (p.kind, tuple(k.upper() for k in p.keywords), p.box, p.wells, p.layers,
-                p.item if p.kind != "relperm" else (p.item or 2), p.match, p.mode)
-
-    for c in build_candidates(info, space):
-        if sig(c.parameter) == sig(parameter):
-            return c
-    return None
-
-
 def _slug(name: str) -> str:
     return "".join(ch if ch.isalnum() else "_" for ch in name)
-
-
-def _natural(name: str) -> tuple:
-    import re
-
-    return tuple(int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name))

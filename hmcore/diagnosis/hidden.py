@@ -27,11 +27,12 @@ import numpy as np
 import pandas as pd
 
 from hmcore.deck_info import DeckInfo
-from hmcore.diagnosis.diagnose import DiagnosisSettings
+from hmcore.diagnosis.settings import DiagnosisSettings
 from hmcore.diagnosis.extensions import KINDS, Candidate, build_candidates
 from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings, Point,
                                          run_lockstep)
 from hmcore.parameters import Parameter, ParameterSpace
+from hmcore.synthetic import PUNQ_NOISE, NoiseModel, noisy_series
 
 STRENGTH = {
     # kind: ((low, high) of a decrease, (low, high) of an increase, P(decrease)); factors or
@@ -175,57 +176,26 @@ def write_hidden_synthetic_case(dest: Path, seed: int, kind: str | None = None,
 
 
 # ----------------------------------------------------------------------------- any deck
-NOISE = {"rho": 0.7, "bhp_flowing": 3.0, "bhp_shut_in": 1.0, "gor_before": 0.10,
-         "gor_after": 0.25, "gas_breakthrough_ratio": 1.10, "wct_before": 0.02,
-         "wct_after": 0.05, "water_breakthrough_wct": 0.01}
-"""PUNQ-S3's noise description (the model description's sigma table), AR(1) in time."""
-
-
-def _ar1(rng: np.random.Generator, n: int, rho: float) -> np.ndarray:
-    z = np.empty(n)
-    e = rng.standard_normal(n)
-    for t in range(n):
-        z[t] = e[t] if t == 0 else rho * z[t - 1] + math.sqrt(1 - rho * rho) * e[t]
-    return z
-
-
-def noisy_history(truth: pd.DataFrame, rng: np.random.Generator, noise: dict | None = None,
-                  start_day: float = 0.5) -> pd.DataFrame:
-    """Observed rows (well, days, quantity, value, sigma, flowing) from noise-free responses.
+def noisy_history(truth: pd.DataFrame, rng: np.random.Generator,
+                  noise: NoiseModel = PUNQ_NOISE, start_day: float = 0.5) -> pd.DataFrame:
+    """Observed rows (well, days, quantity, value, sigma, flowing) from noise-free responses
+    (WOPR, WBHP, WGOR, WWCT per well), with the noise of :func:`hmcore.synthetic.noisy_series`.
 
     WOPR: the rate control, exact, no sigma. WBHP, WGOR (flowing), WWCT (flowing): the truth
     plus sigma times a unit AR(1) series along each well's rows.
     """
-    nz = {**NOISE, **(noise or {})}
     wide = truth[truth.days >= start_day].pivot_table(index=["well", "days"], columns="quantity",
                                                       values="value")
     rows = []
     for well in sorted(wide.index.get_level_values("well").unique()):
         t = wide.loc[well]
-        days = t.index.to_numpy(float)
-        flowing = t["WOPR"].to_numpy() > 0
-
-        def add(q, d, v, sig, flow):
-            rows.append(pd.DataFrame({"well": well, "days": d, "quantity": q, "value": v,
-                                      "sigma": sig, "flowing": flow.astype(int)}))
-
-        add("WOPR", days, t["WOPR"].to_numpy(), np.full(days.size, np.nan), flowing)
-        bhp = t["WBHP"].to_numpy()
-        sig = np.where(flowing, nz["bhp_flowing"], nz["bhp_shut_in"])
-        add("WBHP", days, bhp + sig * _ar1(rng, days.size, nz["rho"]), sig, flowing)
-        fd = days[flowing]
-        gor = t["WGOR"].to_numpy()[flowing]
-        if gor.size:
-            bt = np.maximum.accumulate(gor > nz["gas_breakthrough_ratio"] * gor[0])
-            sig = np.where(bt, nz["gor_after"], nz["gor_before"]) * gor
-            add("WGOR", fd, np.maximum(gor + sig * _ar1(rng, gor.size, nz["rho"]), 0.0), sig,
-                np.ones(gor.size, bool))
-        wct = t["WWCT"].to_numpy()[flowing]
-        if wct.size:
-            bt = np.maximum.accumulate(wct > nz["water_breakthrough_wct"])
-            sig = np.where(bt, nz["wct_after"], nz["wct_before"])
-            add("WWCT", fd, np.clip(wct + sig * _ar1(rng, wct.size, nz["rho"]), 0.0, 1.0), sig,
-                np.ones(wct.size, bool))
+        series, _, _ = noisy_series(t.index.to_numpy(float), t["WOPR"].to_numpy(),
+                                    t["WBHP"].to_numpy(), t["WGOR"].to_numpy(),
+                                    t["WWCT"].to_numpy(), rng, noise)
+        rows += [pd.DataFrame({"well": well, "days": x.days, "quantity": x.quantity,
+                               "value": x.value, "sigma": x.sigma,
+                               "flowing": x.flowing.astype(int)})
+                 for x in series if x.days.size or x.quantity in ("WOPR", "WBHP")]
     obs = pd.DataFrame(pd.concat(rows, ignore_index=True))
     obs["value"] = obs["value"] + 0.0
     return obs

@@ -265,6 +265,19 @@ class LevenbergMarquardt:
         self.J = self.J + np.outer(dr - self.J @ du, du) / nn
         self.jacobian_is_fresh = False
 
+    def trim(self, n: int) -> list[np.ndarray]:
+        """Keep the first ``n`` of the points just asked for, when they are all trial steps
+        (fewer damping values this iteration); otherwise (a start point or a Jacobian cannot
+        be cut short) or when ``n < 1``, ask for nothing and stop: "simulation budget spent".
+        Returns the points still to simulate."""
+        if n >= len(self._pending):
+            return [p[1] for p in self._pending]
+        if n >= 1 and all(p[0] == "trial" for p in self._pending):
+            self._pending = self._pending[:n]
+            return [p[1] for p in self._pending]
+        self._pending = []
+        return self._finish("simulation budget spent")
+
     def _finish(self, reason: str) -> list:
         self.done = True
         self.reason = reason
@@ -274,25 +287,43 @@ class LevenbergMarquardt:
 def run_lockstep(minimisers: list[LevenbergMarquardt],
                  evaluate: Callable[[list[tuple[int, np.ndarray]]],
                                     list[tuple[np.ndarray | None, Any]]],
-                 workers: int = 1) -> None:
+                 workers: int = 1, limit: int | None = None) -> int:
     """Drive several minimisers together: each round, every unfinished one asks for its points
     and all points go to ``evaluate`` in one batch (``[(minimiser index, u), ...]``). When the
     batch would leave some of ``workers`` idle, the best minimisers that are stepping get one
-    more damping trial each to fill it."""
+    more damping trial each to fill it.
+
+    ``limit`` caps the points evaluated in all (None: no cap): a round that would pass it is
+    cut (no filling trials, then fewer trial steps, in minimiser order), and a minimiser whose
+    points cannot be cut (a start point, a Jacobian) stops (:meth:`LevenbergMarquardt.trim`).
+    Returns the number of points evaluated."""
+    spent = 0
     while True:
         asks = {k: m.ask() for k, m in enumerate(minimisers) if not m.done}
         asks = {k: pts for k, pts in asks.items() if pts}
         if not asks:
-            return
-        deficit = (-sum(len(p) for p in asks.values())) % max(workers, 1)
+            return spent
+        total = sum(len(p) for p in asks.values())
+        deficit = (-total) % max(workers, 1)
+        if limit is not None:
+            deficit = min(deficit, max(limit - spent - total, 0))
         order = sorted((k for k in asks if minimisers[k].stepping),
                        key=lambda k: minimisers[k].best.ssr)
         for k in order[:deficit]:
             more = minimisers[k].ask(extra_trials=1)
             if more:
                 asks[k] = more
+        if limit is not None and total > limit - spent:
+            room = limit - spent
+            for k in list(asks):
+                asks[k] = minimisers[k].trim(room)
+                room -= len(asks[k])
+            asks = {k: pts for k, pts in asks.items() if pts}
+            if not asks:
+                return spent
         batch = [(k, u) for k, pts in asks.items() for u in pts]
         results = evaluate(batch)
+        spent += len(batch)
         pos = 0
         for k, pts in asks.items():
             minimisers[k].tell(results[pos:pos + len(pts)])

@@ -13,8 +13,8 @@ Two things live here:
   (fitted history, its early and late halves, the held-back part, and flowing vs shut-in for
   BHP): bias, trend, RMS, all standardised by the noise level, with "beyond noise" flags that
   account for the autocorrelation (effective sample size ``n (1 - rho) / (1 + rho)``), and the
-  water (WWCT crossing 0.05) and gas (GOR 20 % above its initial value) breakthrough timing
-  errors. The result is a JSON-serialisable dict.
+  water (WWCT crossing 0.05, see :data:`WATER_BREAKTHROUGH_SEEN`) and gas (GOR 20 % above
+  its initial value) breakthrough timing errors. The result is a JSON-serialisable dict.
 """
 
 from __future__ import annotations
@@ -26,19 +26,27 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from hmcore.alignment import nearest
+from hmcore.synthetic import PUNQ_NOISE, WATER_BREAKTHROUGH_WCT
+
 RESPONSE_OF = {"WBHP": "bhp", "WOPR": "oil", "WWPR": "water", "WGPR": "gas", "WGOR": "gor",
                "WWCT": "wct"}
-QUANTITY_OF = {v: k for k, v in RESPONSE_OF.items()}
 
 SIGMA_FLOOR = {"WBHP": 0.3, "WWCT": 0.01, "WGOR_REL": 0.03, "RATE_REL": 0.02}
 """Smallest noise level an estimate may give: bar, fraction, relative GOR, relative rate."""
-AFTER_BREAKTHROUGH_DEFAULT = {"WWCT": 0.05, "WGOR": 0.25}
+AFTER_BREAKTHROUGH_DEFAULT = {"WWCT": PUNQ_NOISE.wct_after, "WGOR": PUNQ_NOISE.gor_after}
 """Noise after water / gas breakthrough when no well's record allows an estimate: typical
-test-separator uncertainty (PUNQ-S3's description uses the same: WCT 0.05, GOR 25 %)."""
+test-separator uncertainty, PUNQ-S3's description (WCT 0.05, GOR 25 %; see
+:class:`hmcore.synthetic.NoiseModel`)."""
 OIL_RATE_SIGMA_REL = 0.05
 """Noise of a measured oil rate without sigma (usually the rate control): 5 % of the value."""
 OIL_RATE_SIGMA_MIN = 1.0
-WATER_BREAKTHROUGH_WCT = 0.05
+BREAKTHROUGH_SIGMAS = 2.0
+WATER_BREAKTHROUGH_SEEN = WATER_BREAKTHROUGH_WCT + BREAKTHROUGH_SIGMAS * PUNQ_NOISE.wct_before
+"""Water breakthrough as the diagnosis sees it in a noisy record: the water cut reaches
+:data:`hmcore.synthetic.WATER_BREAKTHROUGH_WCT` (0.01, the one threshold) by
+``BREAKTHROUGH_SIGMAS`` standard deviations of the noise before breakthrough (0.02): 0.05.
+A measured water cut of 0.01 is within the noise of a dry well (1 sigma of 0.02 is 0.02)."""
 GAS_BREAKTHROUGH_RATIO = 1.2
 Z_BEYOND_NOISE = 3.0
 MAX_RHO = 0.9
@@ -198,25 +206,11 @@ class ObservationSet:
 
     # ---------------------------------------------------------------- simulated values
     def simulated(self, responses: pd.DataFrame) -> np.ndarray:
-        """Simulated value of every row (nearest simulated time within the tolerance; NaN
-        when there is none)."""
-        out = np.full(len(self.rows), np.nan)
+        """Simulated value of every row (nearest simulated time within the tolerance, see
+        :func:`hmcore.alignment.nearest`; NaN when there is none)."""
         if responses is None or len(responses) == 0:
-            return out
-        groups = {k: g.sort_values("days") for k, g in responses.groupby(["well", "quantity"])}
-        for key, idx in self.rows.groupby(["well", "quantity"], sort=False).indices.items():
-            sim = groups.get(key)
-            if sim is None or sim.empty:
-                continue
-            t = sim["days"].to_numpy(float)
-            v = sim["value"].to_numpy(float)
-            od = self.rows["days"].to_numpy(float)[idx]
-            j = np.clip(np.searchsorted(t, od), 0, len(t) - 1)
-            jl = np.clip(j - 1, 0, len(t) - 1)
-            j = np.where(np.abs(t[jl] - od) <= np.abs(t[j] - od), jl, j)
-            ok = np.abs(t[j] - od) <= self.tolerance_days + 1e-9
-            out[idx] = np.where(ok, v[j], np.nan)
-        return out
+            return np.full(len(self.rows), np.nan)
+        return nearest(self.rows, responses, self.tolerance_days).value
 
     def standardized(self, responses: pd.DataFrame) -> np.ndarray:
         """``(simulated - observed) / sigma`` per row (NaN where unmatched or no sigma)."""
@@ -278,7 +272,7 @@ def _segments(df: pd.DataFrame, q: str) -> list[tuple[str, pd.Index]]:
             if q == "WGOR":
                 bt = _breakthrough_index(v, GAS_BREAKTHROUGH_RATIO * initial_gor(v))
             else:
-                bt = _breakthrough_index(v, WATER_BREAKTHROUGH_WCT)
+                bt = _breakthrough_index(v, WATER_BREAKTHROUGH_SEEN)
             bt = len(v) if bt is None else bt
             out.append(("before", f.index[:bt]))
             out.append(("after", f.index[bt:]))
@@ -453,11 +447,9 @@ def breakthrough_timing(obs_set: ObservationSet, responses: pd.DataFrame, well: 
             continue
         od, ov = o.days.to_numpy(float), o.observed.to_numpy(float)
         s = responses[(responses.well == well) & (responses.quantity == q)].sort_values("days")
-        sim_days_all = s.days.to_numpy(float)
         sv = s.value.to_numpy(float)
         if q == "WGOR":
-            flowing = sv > 0
-            sd, sv = sim_days_all[flowing], sv[flowing]
+            sv = sv[sv > 0]
             thr_o = GAS_BREAKTHROUGH_RATIO * initial_gor(ov)
             thr_s = GAS_BREAKTHROUGH_RATIO * (initial_gor(sv) if sv.size else float("nan"))
             # the simulated series is read at the observation days (same sampling)
@@ -467,9 +459,9 @@ def breakthrough_timing(obs_set: ObservationSet, responses: pd.DataFrame, well: 
             threshold = f"GOR >= {GAS_BREAKTHROUGH_RATIO:g} x initial"
         else:
             sv_at = obs_set.simulated(responses)[o.index.to_numpy()]
-            t_obs = _crossing_day(od, ov, WATER_BREAKTHROUGH_WCT)
-            t_sim = _crossing_day(od, sv_at, WATER_BREAKTHROUGH_WCT)
-            threshold = f"WWCT >= {WATER_BREAKTHROUGH_WCT:g}"
+            t_obs = _crossing_day(od, ov, WATER_BREAKTHROUGH_SEEN)
+            t_sim = _crossing_day(od, sv_at, WATER_BREAKTHROUGH_SEEN)
+            threshold = f"WWCT >= {WATER_BREAKTHROUGH_SEEN:g}"
         ref = t_obs if t_obs is not None else t_sim
         if ref is not None and od.size > 1:
             k = int(np.clip(np.searchsorted(od, ref), 1, od.size - 1))

@@ -1,0 +1,185 @@
+"""The knobs of a diagnosis, and the checks of what a user asks for before any simulation.
+
+:class:`DiagnosisSettings` holds every threshold and step size of the steps (screening,
+recalibration, decision); :func:`parse_kinds` turns ``--kinds well_skin,aquifer_strength`` into
+the families to search, refusing unknown names with a suggestion. Nothing here simulates.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+from dataclasses import dataclass, field
+from typing import Iterable
+
+from hmcore.diagnosis.extensions import KINDS
+from hmcore.diagnosis.recalibrate import LMSettings
+from hmcore.errors import Problem
+
+
+@dataclass(frozen=True)
+class DiagnosisSettings:
+    """Knobs of a diagnosis. Thresholds are in chi-square units of the whitened residuals."""
+
+    kinds: tuple[str, ...] = KINDS
+    """Families of candidate extensions searched (see :data:`hmcore.diagnosis.KINDS`)."""
+    confirm_top: int = 4
+    """Leading candidates confirmed by an actual recalibration."""
+    confirm_max: int = 6
+    confirm_close: float = 0.75
+    """... and more, up to ``confirm_max``, while their score test reaches this share of the
+    leader's: when the globals absorbed a strong effect, several candidates score alike and
+    the linear ranking cannot order them (PUNQ-S3, layer 5 x3.3: chi2 97, 95, 94, 77.3 and
+    the hidden layer 77.0)."""
+    weak_lead: float = 50.0
+    confirm_weak_max: int = 10
+    """When the leading candidate's score test removes less than ``weak_lead``, every screened
+    candidate is recalibrated, up to ``confirm_weak_max``: near the line the linear ranking
+    cannot be trusted (a response that bends, several candidates the globals absorb alike).
+    PUNQ-S3, layer 1 x3.6: the globals absorb all but chi2 19 of it, the score test puts it 9th
+    (9.5, the leader 25.6), and the four recalibrated candidates fit alike."""
+    chi2_threshold: float = 15.0
+    """A candidate is beyond noise when its score test removes more than this (chi2 units).
+    Pure noise gives chi-square(1) values; in the synthetic controls and on PUNQ-S3's
+    measured history the largest of ~30 candidates was 2-4, so 15 leaves a margin of about
+    four for the imperfect noise model."""
+    screen_threshold: float = 8.0
+    """Candidates whose score test removes at least this much (but maybe less than
+    ``chi2_threshold``) are recalibrated too: the score test is linear in the new parameter, and
+    a strong effect seen through a curved response (a layer's permeability, a baffle) can land
+    just under the line. Such a candidate ranks above ``none`` only when its recalibration
+    lowers the fitted SSR by more than ``fit_threshold``. In the synthetic controls and on
+    PUNQ-S3's measured history no candidate reached 5, so the screen costs them nothing."""
+    fit_threshold: float = 15.0
+    """A confirmed extension must lower the fitted SSR by more than this."""
+    heldout_threshold: float = 6.0
+    """... and the held-back SSR by more than this (and the held-back E must drop). When the
+    calibrated model already fits the held-back history within noise (its whitened SSR under
+    the chi-square mean + ``quiet_sd`` standard deviations), the held-back data carry nothing
+    to confirm: the extension must then lower the held-back E and not raise the held-back SSR
+    by more than this."""
+    quiet_sd: float = 3.0
+    heldout_e_slack: float = 0.25
+    """When the held-back whitened SSR drops decisively (see
+    :func:`hmcore.diagnosis.decision.heldout_decisive_drop`) the held-back E may rise by up to
+    this share and the held-back history still confirms: E weights every point alike whatever
+    its noise, and noisy responses can raise it for the truth itself (PUNQ-S3, aquifer 2 x9.2:
+    the truth's held-back E 11 % above the calibrated base's; synthetic fault seed 12: the
+    hidden plane +2 %)."""
+    tie_band: float = 10.0
+    """Recalibrated candidates whose fitted SSR is within this of the best fit the fitted
+    history cannot tell apart: the held-back history orders them."""
+    calibration: LMSettings = field(default_factory=lambda: LMSettings(
+        fd_step=0.1, max_iter=10, max_evaluations=40, trials=2, ftol=0.02))
+    """Phase 1 of the calibration (weighted least squares before the noise is refined)."""
+    polish: LMSettings = field(default_factory=lambda: LMSettings(
+        fd_step=0.1, max_iter=4, max_evaluations=16, trials=2, ftol=0.005))
+    """Phase 2 of the calibration (prewhitened residuals)."""
+    recalibration: LMSettings = field(default_factory=lambda: LMSettings(
+        fd_step=0.1, max_iter=8, max_evaluations=12, trials=1, ftol=0.005))
+    """Each leading candidate's recalibration (warm start, Broyden updates, lockstep)."""
+    refine: LMSettings = field(default_factory=lambda: LMSettings(
+        fd_step=0.1, max_iter=3, max_evaluations=12, trials=1, ftol=0.005))
+    """The best recalibrated candidates continue from a fresh finite-difference Jacobian."""
+    refine_top: int = 2
+    restart: LMSettings = field(default_factory=lambda: LMSettings(
+        fd_step=0.1, max_iter=6, max_evaluations=18, trials=1, ftol=0.005))
+    """When the calibration pressed global parameters against their bounds, they have absorbed
+    what an extension may explain better, and a warm-started recalibration rarely leaves that
+    basin: the best recalibrated candidates are then also recalibrated from the base model as
+    given (see :meth:`hmcore.diagnosis.workflow.Diagnosis._restart`)."""
+    near_bound: float = 0.05
+    """Scaled distance to a bound that counts as "at the bound" for the restart (negative: no
+    restarts)."""
+    restart_top: int = 2
+    """This many recalibrated candidates (best fits first) are restarted (each costs about 20
+    runs; on PUNQ-S3 the hidden aquifer and layer were the best warm fits), and with them every
+    other one whose warm fit is within ``tie_band`` of the best and beyond noise (the fitted
+    history cannot tell those apart, so each gets the same chance from the deck's values;
+    PUNQ-S3, a baffle in layer 2: warm fits 431.9, 432.1, 434.1 and the hidden layer 438.0)."""
+    restart_max: int = 4
+    """At most this many restarts (each costs about 20 runs)."""
+    restart_on_veto: bool = True
+    """Also restart, when no global is at its bound, the recalibrated candidates that fit
+    beyond noise but that the held-back history vetoes (see
+    :func:`hmcore.diagnosis.refit.veto_restart_choice`)."""
+    restart_grid: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
+    """Candidate values (scaled coordinates) tried with the globals at the deck's values before
+    each restart; the best (or the candidate's recalibrated value) starts it."""
+    restart_prior_sd: float = 0.5
+    """The restart minimises the fitted SSR plus a Gaussian prior on the globals at the deck's
+    values with this standard deviation (scaled coordinates; 0.5 = a quarter of the range):
+    "the extension on the model as given, the globals moved as little as the data need".
+    Without it the restart drifts back into the valley the globals made (PUNQ-S3, aquifer 1
+    x5.3: the restart ended at SSR 462 with permz at its bound again)."""
+    restart_slack: float = 5.0
+    """A restart counts when its fitted SSR + prior is below the warm start's (prior of the
+    warm start's globals) and its fitted SSR is at most this much above the warm start's: of
+    fits the fitted history cannot tell apart (chi2 units), the one closer to the model as
+    given."""
+    line_search: tuple[float, ...] = (0.5, 1.0, 1.5)
+    """Multiples of the score test's linear step tried along each leading candidate's joint
+    direction (see :func:`hmcore.diagnosis.refit.joint_direction`) before its recalibration;
+    the best point starts it."""
+    global_fd_step: float = 0.1
+    reuse_jacobian_within: float = 0.15
+    """Reuse the calibration's last finite-difference Jacobian of the globals for the ranking
+    when the calibration moved less than this (scaled coordinates) since computing it."""
+    heldout_fraction: float = 0.25
+    """Held back when the case sets no history_end_days: this share of the record."""
+    plots: bool = True
+    polish_given: bool = True
+    """Polish a given calibrated vector (e.g. a campaign's best) with phase 2 of the
+    calibration, so that an extension's gain is not the globals' unfinished fit."""
+    workers: int = 2
+    """Simulations the evaluator runs at once (recalibration batches are filled to it)."""
+    budget: int | None = None
+    """Cap on simulator calls, every one counted (None: as many as the steps need). The
+    ranking needs one run per candidate (+ one per global parameter) and is reserved first;
+    the calibration and the recalibrations share the rest (see
+    :func:`hmcore.diagnosis.workflow.minimum_runs`)."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "kinds", tuple(self.kinds))
+        problems = kinds_problems(self.kinds, "kinds")
+        if self.budget is not None and self.budget < 1:
+            problems.append(Problem("budget", f"must be at least 1, got {self.budget}",
+                                    "give a positive number of simulator calls, or none"))
+        if self.workers < 1:
+            problems.append(Problem("workers", f"must be at least 1, got {self.workers}",
+                                    "give a positive number of simulations at once"))
+        if problems:
+            raise ValueError("; ".join(map(str, problems)))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def kinds_problems(kinds: Iterable[str], where: str = "--kinds") -> list[Problem]:
+    """A :class:`Problem` per name in ``kinds`` that is not a family of extensions (with the
+    closest family as the suggested fix), and one for an empty list."""
+    kinds = list(kinds)
+    if not kinds:
+        return [Problem(where, "names no family of extensions",
+                        f"give one or more of {', '.join(KINDS)} (comma-separated)")]
+    out = []
+    for name in kinds:
+        if name in KINDS:
+            continue
+        close = difflib.get_close_matches(name, KINDS, n=1, cutoff=0.5)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        out.append(Problem(where, f"unknown kind of extension {name!r}",
+                           f"{hint}the kinds are {', '.join(KINDS)}"))
+    return out
+
+
+def parse_kinds(text: str | Iterable[str], where: str = "--kinds") -> tuple[str, ...]:
+    """The families named in ``text`` (comma- or space-separated, or a list of names), in the
+    order of :data:`KINDS`. ValueError with every unknown name (and a suggestion) otherwise."""
+    names = text.replace(",", " ").split() if isinstance(text, str) else \
+        [n.strip() for n in text if n.strip()]
+    names = list(dict.fromkeys(names))
+    problems = kinds_problems(names, where)
+    if problems:
+        raise ValueError("; ".join(map(str, problems)))
+    return tuple(k for k in KINDS if k in names)

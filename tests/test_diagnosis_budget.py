@@ -1,0 +1,254 @@
+"""The diagnosis's budget and ``--kinds``: every simulation is counted, a budget that cannot
+cover the minimum is refused before any simulation, an unknown kind is refused with a
+suggestion; the flow honours ``workers``, ``kinds`` and the task runner it is given.
+
+Fast tests use the linear stand-in simulator of test_diagnosis.py; the last test runs
+`hmflow` as a user types it (real OPM, real Prefect)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from test_diagnosis import _linear_case
+
+
+# ============================================================================ --kinds
+def test_kinds_are_parsed_in_the_library_order_and_unknown_ones_get_a_suggestion():
+    from hmcore.diagnosis import KINDS, DiagnosisSettings, parse_kinds
+
+    assert parse_kinds("aquifer_strength, well_skin") == ("well_skin", "aquifer_strength")
+    assert parse_kinds(["layer_permeability", "layer_permeability"]) == ("layer_permeability",)
+    assert parse_kinds(" ".join(KINDS)) == KINDS
+    with pytest.raises(ValueError) as err:
+        parse_kinds("well_skn,faults,aquifer_strength")
+    text = str(err.value)
+    assert "--kinds: unknown kind of extension 'well_skn'" in text
+    assert "did you mean 'well_skin'?" in text
+    assert "unknown kind of extension 'faults'" in text and "'aquifer_strength'" not in text
+    with pytest.raises(ValueError, match="names no family of extensions"):
+        parse_kinds(" , ")
+    with pytest.raises(ValueError, match="kinds: unknown kind of extension 'skin'"):
+        DiagnosisSettings(kinds=("skin",))
+    assert DiagnosisSettings(kinds=["well_skin"]).kinds == ("well_skin",)
+
+
+def test_the_cli_refuses_unknown_kinds_before_anything_starts(tmp_path):
+    from typer.testing import CliRunner
+
+    from hmflow.cli import app
+
+    out = CliRunner().invoke(app, ["diagnose", "--kinds", "well_skin,layer_perm",
+                                   "--storage", str(tmp_path)], env={"COLUMNS": "200"})
+    text = " ".join(out.output.split())
+    assert out.exit_code == 2, out.output
+    assert "unknown kind of extension 'layer_perm'" in text
+    assert "did you mean 'layer_permeability'?" in text and "Traceback" not in out.output
+    assert list(tmp_path.iterdir()) == []  # nothing written, nothing started
+
+
+def test_kinds_limit_the_candidates_searched(tmp_path):
+    from hmcore.diagnosis import DiagnosisSettings, diagnose
+
+    case, sim, _ = _linear_case(tmp_path)
+    doc = diagnose(case, sim.evaluate_batch,
+                   settings=DiagnosisSettings(kinds=("well_skin",), plots=False))
+    kinds = {c["kind"] for c in doc["ranking"]["candidates"]}
+    assert kinds == {"well_skin"} and len(doc["ranking"]["candidates"]) == 4
+    assert list(doc["settings"]["kinds"]) == ["well_skin"]
+
+
+# ============================================================================ budget
+def test_a_budget_under_the_minimum_is_refused_before_any_simulation(tmp_path):
+    from hmcore.diagnosis import DiagnosisSettings, budget_problem, diagnose, minimum_runs
+
+    case, sim, truth = _linear_case(tmp_path)
+    # 28 candidates and 5 globals: 6 runs to calibrate (the deck's values and a Jacobian)
+    # or 1 of a given vector, then 28 probes and 5 finite differences
+    assert minimum_runs(case, DiagnosisSettings(), given=False) == 39
+    assert minimum_runs(case, DiagnosisSettings(), given=True) == 34
+    assert minimum_runs(case, DiagnosisSettings(kinds=("well_skin",)), given=True) == 10
+    for budget, given in ((8, True), (33, True), (38, False)):
+        settings = DiagnosisSettings(budget=budget, plots=False)
+        problem = budget_problem(case, settings, given)
+        assert problem is not None and problem.where == "--budget"
+        assert f"cannot cover the minimum of {34 if given else 39}" in problem.what
+        assert "--kinds" in problem.fix and "\n" not in str(problem)
+        with pytest.raises(ValueError, match="cannot cover the minimum"):
+            diagnose(case, sim.evaluate_batch, settings=settings,
+                     calibrated=truth if given else None)
+        assert sim.calls == 0
+    assert budget_problem(case, DiagnosisSettings(budget=34), True) is None
+    assert budget_problem(case, DiagnosisSettings(), False) is None  # no budget
+
+
+@pytest.mark.parametrize("budget", [39, 41, 44, 50, 57, 66, 80])
+def test_the_budget_counts_every_simulation_from_the_deck_values(tmp_path, budget):
+    """Every call of the evaluator counts, whatever step makes it; the calibration's
+    Levenberg-Marquardt never overshoots (it used to ask for a batch of trial steps past its
+    cap), and the ranking's calls are set aside first, so a budget at the minimum runs."""
+    from hmcore.diagnosis import DiagnosisSettings, diagnose
+
+    case, sim, _ = _linear_case(tmp_path)
+    doc = diagnose(case, sim.evaluate_batch,
+                   settings=DiagnosisSettings(budget=budget, plots=False))
+    assert doc["cost"]["simulations"] == sim.calls <= budget
+    assert doc["ranking"]["runs"] >= 28 and len(doc["ranking"]["candidates"]) == 28
+
+
+@pytest.mark.parametrize("budget", [34, 36, 40, 47, 60, 90])
+def test_the_budget_counts_every_simulation_from_a_given_vector(tmp_path, budget):
+    """`--from-campaign X --budget 8` used to run 10 simulations (the given run and a polish
+    that asked for trial steps past its cap) and then fail in the ranking. A given vector with
+    a hidden skin to find: never more calls than the budget."""
+    from hmcore.diagnosis import DiagnosisSettings, diagnose
+    from hmcore.parameters import Parameter
+
+    hidden = Parameter(name="skin_PROD3", kind="skin", wells=("PROD3",), low=-5, high=30)
+    case, sim, truth = _linear_case(tmp_path, hidden, 12.0)
+    start = {**truth, "permx_mult": 1.2}
+    doc = diagnose(case, sim.evaluate_batch, calibrated=start,
+                   settings=DiagnosisSettings(budget=budget, plots=False))
+    assert doc["cost"]["simulations"] == sim.calls <= budget
+    if budget >= 90:
+        assert doc["selected"] and doc["selected"]["id"] == "well_skin:PROD3"
+
+
+def test_lockstep_never_evaluates_more_than_its_limit():
+    from hmcore.diagnosis.recalibrate import LevenbergMarquardt, LMSettings, run_lockstep
+
+    target = np.array([0.3, -0.2, 0.5])
+
+    def evaluate(batch):
+        return [(np.r_[np.sin(u - target), 0.1 * (u - target) ** 2], None) for _, u in batch]
+
+    for limit in range(0, 30):
+        lms = [LevenbergMarquardt(np.zeros(3), LMSettings(max_evaluations=12, trials=2))
+               for _ in range(2)]
+        calls = []
+
+        def counted(batch):
+            calls.append(len(batch))
+            return evaluate(batch)
+
+        spent = run_lockstep(lms, counted, workers=3, limit=limit)
+        assert spent == sum(calls) <= limit
+        if limit < 4:  # not even one start point and its Jacobian
+            assert all(m.best is None and m.reason == "simulation budget spent" for m in lms)
+    # no limit: as before, every minimiser runs to its own cap (+ one round of trials)
+    lms = [LevenbergMarquardt(np.zeros(3), LMSettings(max_evaluations=12, trials=2))]
+    assert run_lockstep(lms, evaluate) == lms[0].n_evaluations
+
+
+# ============================================================================ the flow
+class _Stop(Exception):
+    pass
+
+
+def test_the_flow_honours_workers_kinds_and_the_task_runner(tmp_path, monkeypatch):
+    """`flows.diagnose` passes ``workers`` to the diagnosis (the recalibration batches) and to
+    the campaign's task-runner factory with the runner and Dask address given, and the kinds
+    to search; a budget under the minimum ends the run before the diagnosis exists."""
+    import flows.diagnose as fd
+
+    (tmp_path / "c").mkdir()
+    case, _, _ = _linear_case(tmp_path / "c")
+    seen: dict = {}
+
+    class Runner:
+        def __init__(self, kind, workers, address):
+            seen["runner"] = (kind, workers, address)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+    class Stub:
+        def __init__(self, loaded, evaluate_batch, settings, log=None):
+            seen["settings"] = settings
+
+        def calibrate(self, *a):
+            raise _Stop()
+
+    class Version:
+        def ref(self):
+            return {"step": "case"}
+
+    monkeypatch.setattr(fd, "get_run_logger", lambda: logging.getLogger("test"))
+    monkeypatch.setattr(fd, "prepare_deck", lambda *a: Version())
+    monkeypatch.setattr(fd, "make_runner", Runner)
+    monkeypatch.setattr(fd, "Diagnosis", Stub)
+    monkeypatch.setattr("flows.refuse.get_run_logger", lambda: logging.getLogger("test"))
+    with pytest.raises(_Stop):
+        fd.diagnose_flow.fn(case=str(case.source), storage=str(tmp_path / "s"), workers=3,
+                            task_runner="dask", dask_address="tcp://head:8786",
+                            kinds=["aquifer_strength", "well_skin"], budget=200)
+    assert seen["runner"] == ("dask", 3, "tcp://head:8786")
+    assert seen["settings"].workers == 3 and seen["settings"].budget == 200
+    assert seen["settings"].kinds == ("well_skin", "aquifer_strength")
+    seen.clear()
+    state = fd.diagnose_flow.fn(case=str(case.source), storage=str(tmp_path / "s"), budget=8,
+                                calibrated={"skin": 1.0})
+    assert state.is_failed() and "cannot cover the minimum of 34" in state.message
+    state = fd.diagnose_flow.fn(case=str(case.source), storage=str(tmp_path / "s"),
+                                kinds=["well_skn"])
+    assert state.is_failed() and "did you mean 'well_skin'?" in state.message
+    state = fd.diagnose_flow.fn(case=str(case.source), storage=str(tmp_path / "s"),
+                                settings={"chi2": 3.0})
+    assert state.is_failed() and "unknown field(s) ['chi2']" in state.message
+    assert seen == {}  # no diagnosis, no runner
+
+
+# ============================================================================ real OPM
+@pytest.mark.opm
+def test_from_campaign_with_a_small_budget_is_refused_and_a_larger_one_is_kept(tmp_path):
+    """As the user typed it: `hmflow diagnose --from-campaign X --budget 8` is refused in one
+    line before any simulation; with a budget that covers the minimum of one kind, exactly as
+    many simulations as run directories, never more than the budget (real OPM, real Prefect;
+    the campaign's archived best is stored directly, as `hmflow run` archives it)."""
+    from hmcore.case import load_case
+    from hmcore.synthetic import SYNTHETIC_TRUTH, ensure_synthetic_case
+    from storage import ArtifactStore
+    from tasks.case import prepare_deck
+
+    def hmflow(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
+        env = {**os.environ, "COLUMNS": "150"}
+        return subprocess.run([sys.executable, "-m", "hmflow.cli", *args], cwd=tmp_path,
+                              env=env, capture_output=True, text=True, timeout=timeout,
+                              check=False)
+
+    shutil.copytree(Path(ensure_synthetic_case()).parent, tmp_path / "syn")
+    store_root = tmp_path / "hmflow-storage"
+    case = load_case(tmp_path / "syn" / "case.toml")
+    prepare_deck.fn(case, "syn/case.toml", str(store_root), "b")
+    best = {n: float(SYNTHETIC_TRUTH.get(n, 1.0)) for n in case.space.names}
+    ArtifactStore(store_root).put_files("b", "best", {"index": 0}, {"params.json": best}, "test")
+
+    refused = hmflow("diagnose", "--from-campaign", "b", "--budget", "8")
+    assert refused.returncode == 2, refused.stdout + refused.stderr
+    lines = [ln for ln in refused.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "--budget: 8 simulator calls cannot cover the minimum of 34" \
+        in lines[0], refused.stderr
+    assert "Traceback" not in refused.stdout + refused.stderr
+    runs = store_root / "b" / "diagnosis-runs"
+    assert not runs.exists()
+    diag = hmflow("diagnose", "--from-campaign", "b", "--budget", "16", "--kinds", "well_skin",
+                  "--workers", "2")
+    assert diag.returncode == 0, diag.stdout + diag.stderr
+    assert "Traceback" not in diag.stdout + diag.stderr
+    report = sorted((store_root / "b" / "diagnosis-report").glob("v*/diagnosis.json"))[-1]
+    doc = json.loads(report.read_text())
+    assert doc["settings"]["kinds"] == ["well_skin"] and doc["settings"]["workers"] == 2
+    assert {c["kind"] for c in doc["ranking"]["candidates"]} == {"well_skin"}
+    made = len([p for p in runs.iterdir() if p.is_dir()])
+    assert doc["cost"]["simulations"] == made <= 16

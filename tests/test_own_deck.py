@@ -1,0 +1,444 @@
+"""Bringing a field's own deck: ``hmflow init`` from WCONHIST/WCONINJH, units, injectors,
+history-controlled rates, limits relative to the deck, fault parameters.
+
+SPE9 (``../shared/spe9``, read in place) is turned into a history-matching deck by
+``benchmarks/make_spe9_history.py`` once per session (one real OPM Flow run for its truth).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from hmcore.case import load_case
+from hmcore.errors import CaseError
+from hmcore.units import convert, factor_to_deck
+from hmflow.cli import app
+from tests.conftest import PUNQ_DECK, PUNQ_OBS_FULL, write_case_toml
+
+REPO = Path(__file__).resolve().parents[1]
+SPE9 = REPO.parent / "shared" / "spe9" / "SPE9.DATA"
+needs_spe9 = pytest.mark.skipif(not SPE9.is_file(), reason=f"SPE9 deck not found at {SPE9}")
+
+
+@pytest.fixture(scope="module")
+def spe9_history(tmp_path_factory) -> Path:
+    """The SPE9 history-matching deck (WCONHIST per producer, WCONINJH for INJE1)."""
+    if not SPE9.is_file():
+        pytest.skip(f"SPE9 deck not found at {SPE9}")
+    out = tmp_path_factory.mktemp("spe9") / "history"
+    subprocess.run([sys.executable, str(REPO / "benchmarks" / "make_spe9_history.py"),
+                    "--out", str(out)], check=True, timeout=900, capture_output=True)
+    return out / "SPE9_HM.DATA"
+
+
+@pytest.fixture(scope="module")
+def spe9_case(spe9_history, tmp_path_factory) -> Path:
+    where = tmp_path_factory.mktemp("spe9-case")
+    out = CliRunner().invoke(app, ["init", "--deck", str(spe9_history),
+                                   "--out", str(where / "spe9.toml")])
+    assert out.exit_code == 0, out.output
+    return where / "spe9.toml"
+
+
+# ----------------------------------------------------------------------------- units
+def test_units_convert_and_refuse_by_name():
+    assert factor_to_deck("WBHP", "psia", "METRIC") == pytest.approx(0.0689475729, rel=1e-9)
+    assert factor_to_deck("WBHP", "bar", "FIELD") == pytest.approx(14.503773773, rel=1e-9)
+    assert convert(np.array([1000.0]), "WOPR", "stb/day", "METRIC")[0] == pytest.approx(158.987, rel=1e-5)
+    assert factor_to_deck("WGPR", "Mscf/d", "METRIC") == pytest.approx(28.316846592, rel=1e-9)
+    assert factor_to_deck("WWCT", "%", "FIELD") == 0.01
+    with pytest.raises(ValueError, match="gauge"):
+        factor_to_deck("WBHP", "psig", "METRIC")
+    with pytest.raises(ValueError, match="'bar' is a pressure unit.*reports WOPR in stb/day"):
+        factor_to_deck("WOPR", "bar", "FIELD")
+    with pytest.raises(ValueError, match="unknown unit 'furlongs'"):
+        factor_to_deck("WBHP", "furlongs", "FIELD")
+
+
+def test_psi_column_is_converted_into_a_metric_deck(tmp_path):
+    obs = pd.read_csv(PUNQ_OBS_FULL)
+    bhp = obs.quantity == "WBHP"
+    psi = obs.copy()
+    psi.loc[bhp, "value"] = psi.loc[bhp, "value"] * 14.503773773
+    psi["units"] = np.where(bhp, "psia", "")
+    psi.to_csv(tmp_path / "obs_psi.csv", index=False)
+    case = load_case(write_case_toml(tmp_path / "c.toml", observed=tmp_path / "obs_psi.csv"))
+    ref = load_case(write_case_toml(tmp_path / "r.toml"))
+    a = case.observed[case.observed.quantity == "WBHP"].value.to_numpy()
+    b = ref.observed[ref.observed.quantity == "WBHP"].value.to_numpy()
+    np.testing.assert_allclose(a, b, rtol=1e-9)
+
+
+def test_wrong_units_are_refused_with_file_lines_and_the_deck_unit(tmp_path):
+    obs = pd.read_csv(PUNQ_OBS_FULL).head(20)
+    obs["units"] = ""
+    obs.loc[obs.quantity == "WBHP", "units"] = "psig"
+    obs.loc[obs.quantity == "WOPR", "units"] = "bar"
+    obs.to_csv(tmp_path / "obs.csv", index=False)
+    with pytest.raises(CaseError) as err:
+        load_case(write_case_toml(tmp_path / "c.toml", observed=tmp_path / "obs.csv"))
+    text = str(err.value)
+    assert "obs.csv line" in text
+    assert "gauge pressure 'psig'" in text and "write WBHP in bar" in text
+    assert "'bar' is a pressure unit, not a liquid rate" in text and "sm3/day" in text
+
+
+# ----------------------------------------------------------------------------- init
+@needs_spe9
+def test_init_on_spe9_reads_wconhist_with_units_and_passes_check(spe9_history, spe9_case):
+    case = load_case(spe9_case)  # what `hmflow check` runs
+    assert case.info.unit_system == "FIELD"
+    obs = pd.read_csv(spe9_case.with_name("spe9_observed.csv"))
+    # the first WCONHIST record of PRODU2, as written in the deck, is the day-10 observation
+    text = spe9_history.read_text()
+    text = text[text.index("WCONHIST"):]
+    first = next(line for line in text.splitlines() if line.strip().startswith("'PRODU2'"))
+    tokens = first.split()
+    oil, water, gas, bhp = float(tokens[3]), float(tokens[4]), float(tokens[5]), float(tokens[9])
+    day10 = obs[(obs.well == "PRODU2") & (obs.days == 10)].set_index("quantity")
+    assert day10.loc["WOPR", "value"] == pytest.approx(oil, rel=1e-5)
+    assert day10.loc["WWPR", "value"] == pytest.approx(water, rel=1e-5, abs=1e-9)
+    assert day10.loc["WGPR", "value"] == pytest.approx(gas, rel=1e-5)
+    assert day10.loc["WBHP", "value"] == pytest.approx(bhp, rel=1e-5)
+    assert day10.loc["WOPR", "units"] == "stb/day" and day10.loc["WGPR", "units"] == "mscf/day"
+    assert day10.loc["WBHP", "units"] == "psia"
+    assert set(obs[obs.well == "INJE1"].quantity) == {"WWIR", "WBHP"}
+    # ORAT control fixes the oil rate, RATE control the injected rate: out of the misfit
+    fixed = case.observed[case.observed.controlled]
+    assert set(fixed.quantity) == {"WOPR", "WWIR"}
+    assert set(case.fit_observed.quantity) == {"WBHP", "WWPR", "WGPR"}
+    toml = spe9_case.read_text()
+    assert "# injectors (1): INJE1" in toml and '# name = "skin_PRODU12"' in toml
+
+
+@needs_spe9
+def test_init_never_overwrites(spe9_history, spe9_case):
+    before = spe9_case.read_text()
+    out = CliRunner().invoke(app, ["init", "--deck", str(spe9_history), "--out", str(spe9_case)])
+    assert out.exit_code == 2 and "never overwrites" in " ".join(out.output.split())
+    assert spe9_case.read_text() == before
+
+
+def test_init_on_punqs3_without_history_says_what_to_give_then_works_with_a_csv(tmp_path):
+    runner = CliRunner()
+    out = runner.invoke(app, ["init", "--deck", str(PUNQ_DECK), "--out", str(tmp_path / "p.toml")])
+    assert out.exit_code == 2
+    said = " ".join(out.output.split())
+    assert "no measured history" in said and "--observed" in said
+    assert not (tmp_path / "p.toml").exists()
+    out = runner.invoke(app, ["init", "--deck", str(PUNQ_DECK), "--observed", str(PUNQ_OBS_FULL),
+                              "--out", str(tmp_path / "p.toml")])
+    assert out.exit_code == 0, out.output
+    case = load_case(tmp_path / "p.toml")
+    assert case.space.names == ["poro_mult", "permx_mult", "permy_mult", "permz_mult", "skin"]
+    assert len(case.observed) == len(load_case(write_case_toml(tmp_path / "r.toml")).observed)
+
+
+# ----------------------------------------------------------------------------- parameters
+def test_fault_and_well_parameters_naming_nothing_in_the_deck_are_refused(tmp_path):
+    extra = """
+[[parameters]]
+name = "f1"
+kind = "fault"
+faults = ["F_NORTH"]
+low = 0.0
+high = 1.0
+
+[[parameters]]
+name = "skin_x"
+kind = "skin"
+wells = ["PRO-99"]
+low = -2.0
+high = 10.0
+"""
+    with pytest.raises(CaseError) as err:
+        load_case(write_case_toml(tmp_path / "c.toml", extra=extra))
+    text = str(err.value)
+    assert "unknown fault(s) ['F_NORTH']" in text and "FAULTS keyword" in text
+    assert "unknown well(s) ['PRO-99']" in text
+
+
+def test_fault_multiplier_is_written_as_multflt_that_opm_reads(tmp_path):
+    from hmcore.deck import prepare_run_deck
+    from hmcore.deck_info import DeckInfo
+    from hmcore.parameters import Parameter, ParameterSpace
+    from tests.conftest import copy_punq_deck
+
+    deck = copy_punq_deck(tmp_path / "deck")
+    text = deck.read_text()
+    grid_end = text.index("\nPROPS")
+    fault = "\nFAULTS\n 'F_MID' 10 10 1 28 1 5 'X' /\n/\n"
+    deck.write_text(text[:grid_end] + fault + text[grid_end:])
+    info = DeckInfo.inspect(deck)
+    assert info.faults == ("F_MID",)
+    space = ParameterSpace(parameters=(Parameter(name="f", kind="fault", faults=("F_MID",),
+                                                 low=0.0, high=1.0),))
+    run_deck = prepare_run_deck(deck, {"f": 0.05}, space, tmp_path / "run", info)
+    assert "MULTFLT\n 'F_MID' 0.05 /" in run_deck.read_text()
+    DeckInfo.inspect(run_deck)  # OPM's parser takes it
+
+
+@needs_spe9
+def test_spe9_permeability_x3_is_not_invalid(spe9_case):
+    from hmcore.physics import check_physics
+
+    case = load_case(spe9_case)
+    values = {"poro_mult": 1.0, "permx_mult": 3.0, "permy_mult": 3.0, "permz_mult": 3.0,
+              "skin": 0.0}
+    phys = check_physics(values, case.space, case.info, case.physics)
+    assert phys.valid, phys.violations
+    # the cap is relative to the deck: SPE9 reaches about 10 D, so 20 D would have fired
+    assert case.info.properties["PERMX"][1] * 3 > 20000
+
+
+@pytest.mark.opm
+@needs_spe9
+def test_spe9_injector_rate_and_bhp_are_matched(spe9_case, tmp_path):
+    from hmcore.evaluation import evaluate, score_responses
+
+    case = load_case(spe9_case)
+    truth = {"poro_mult": 1.0, "permx_mult": 1.8, "permy_mult": 1.8, "permz_mult": 0.6,
+             "skin": 0.0}
+    ev = evaluate(case, truth, tmp_path / "run")
+    assert ev.status.value == "COMPLETE", ev.reason
+    s = score_responses(case, ev.responses)
+    assert s["per_well_response"]["INJE1"]["bhp"] < 0.05
+    from hmcore.alignment import align
+
+    pairs = align(case.observed, ev.responses, case.time_tolerance_days).pairs
+    inje = pairs[pairs.well == "INJE1"]
+    assert set(inje.quantity) == {"WWIR", "WBHP"}
+    wwir = inje[inje.quantity == "WWIR"]
+    # under RATE control the simulated rate is the measured one (up to the deck's 6 digits)
+    np.testing.assert_allclose(wwir.simulated, wwir.observed, rtol=1e-3)
+    assert ev.E < 0.01  # the truth's globals: only the noise and the hidden skin remain
+
+
+def test_a_stray_slash_that_opm_flow_tolerates_is_a_warning_not_an_error(tmp_path):
+    from tests.conftest import copy_punq_deck
+
+    deck = copy_punq_deck(tmp_path / "deck")
+    text = deck.read_text()
+    deck.write_text(text.replace("\nSCHEDULE", "\nSCHEDULE\nTUNING\n/\n/\n/\n/", 1))
+    out = CliRunner().invoke(app, ["check", "--case", str(write_case_toml(tmp_path / "c.toml",
+                                                                          deck=deck))])
+    said = " ".join(out.output.split())
+    assert out.exit_code == 0, said
+    assert "warning OPM Flow tolerates this and runs on" in said
+    assert "PUNQS3.DATA line" in said and "Extra line starting with '/'" in said
+
+
+def _punq_with_multnum(tmp_path: Path) -> Path:
+    """PUNQ-S3 with MULTNUM in GRID: layers 1-2 region 1, layers 3-5 region 2."""
+    from tests.conftest import copy_punq_deck
+
+    deck = copy_punq_deck(tmp_path / "deck")
+    text = deck.read_text()
+    grid_end = text.index("\nPROPS")
+    per_layer = 19 * 28
+    multnum = f"\nMULTNUM\n {2 * per_layer}*1 {3 * per_layer}*2 /\n"
+    deck.write_text(text[:grid_end] + multnum + text[grid_end:])
+    return deck
+
+
+def test_region_multiplier_becomes_multireg_and_lands_in_its_region(tmp_path):
+    from hmcore.deck import prepare_run_deck
+    from hmcore.deck_info import DeckInfo, _parse
+    from hmcore.parameters import Parameter, ParameterSpace
+    from hmcore.physics import check_physics
+    from hmcore.case import PhysicsSettings
+
+    deck = _punq_with_multnum(tmp_path)
+    info = DeckInfo.inspect(deck)
+    assert info.regions["MULTNUM"] == (1, 2) and "MULTNUM" in info.grid_keywords
+    space = ParameterSpace(parameters=(
+        Parameter(name="k2", kind="multiply", keywords=("PERMX",), region="MULTNUM",
+                  region_numbers=(2,), low=0.1, high=10.0),
+        Parameter(name="t12", kind="multregt", region_numbers=(1, 2), low=0.0, high=1.0)))
+    run_deck = prepare_run_deck(deck, {"k2": 2.5, "t12": 0.1}, space, tmp_path / "run", info)
+    text = run_deck.read_text()
+    assert "MULTIREG\n 'PERMX' 2.5 2 'M' /" in text
+    assert "MULTREGT\n 1 2 0.1 'XYZ' 'ALL' 'M' /" in text
+    _, base, _, _ = _parse(deck)
+    _, moved, _, _ = _parse(run_deck)
+    k0 = np.asarray(base.field_props().get_double_array("PERMX"))
+    k1 = np.asarray(moved.field_props().get_double_array("PERMX"))
+    region = np.asarray(base.field_props().get_int_array("MULTNUM"))
+    np.testing.assert_allclose(k1[region == 2], 2.5 * k0[region == 2], rtol=1e-9)
+    np.testing.assert_allclose(k1[region == 1], k0[region == 1], rtol=1e-12)
+    # the physics checks see the factor in region 2 only
+    factors = info.cells.factors([("PERMX", 2.5, ("MULTNUM", (2,)))])["PERMX"]
+    assert set(np.unique(factors)) == {1.0, 2.5}
+    assert check_physics({"k2": 2.5, "t12": 0.1}, space, info, PhysicsSettings()).runnable
+
+
+def test_region_parameters_naming_a_missing_region_are_refused(tmp_path):
+    deck = _punq_with_multnum(tmp_path)
+    extra = """
+[[parameters]]
+name = "k7"
+kind = "multiply"
+keywords = ["PERMX"]
+region = "MULTNUM"
+region_numbers = [7]
+low = 0.5
+high = 2.0
+
+[[parameters]]
+name = "kf"
+kind = "multiply"
+keywords = ["PORO"]
+region = "OPERNUM"
+region_numbers = [1]
+low = 0.5
+high = 2.0
+"""
+    with pytest.raises(CaseError) as err:
+        load_case(write_case_toml(tmp_path / "c.toml", deck=deck, extra=extra))
+    text = str(err.value)
+    assert "MULTNUM has no region(s) [7]" in text and "values are [1, 2]" in text
+    assert "GRID section defines no OPERNUM" in text
+
+
+def test_dates_are_accepted_where_days_are(tmp_path):
+    obs = pd.read_csv(PUNQ_OBS_FULL)
+    start = pd.Timestamp("1967-01-01")
+    dated = obs.drop(columns=["days"]).assign(
+        date=[(start + pd.Timedelta(days=float(d))).date().isoformat() for d in obs.days])
+    dated.to_csv(tmp_path / "dated.csv", index=False)
+    case = load_case(write_case_toml(tmp_path / "c.toml", observed=tmp_path / "dated.csv",
+                                     history_end_days=None,
+                                     extra_case="history_end_days = 1975-01-15"))
+    ref = load_case(write_case_toml(tmp_path / "r.toml"))
+    np.testing.assert_allclose(np.sort(case.observed.days), np.sort(ref.observed.days), atol=1.0)
+    assert case.history_end_days == ref.history_end_days == 2936.0
+    clash = obs.assign(date="1967-02-01").head(3)
+    clash.to_csv(tmp_path / "clash.csv", index=False)
+    with pytest.raises(CaseError, match="but date 1967-02-01 is day 31 from the deck's START"):
+        load_case(write_case_toml(tmp_path / "x.toml", observed=tmp_path / "clash.csv"))
+
+
+def test_init_commented_parameters_load_when_switched_on(tmp_path):
+    """Every block `init` writes commented out (per-well skins, per-region permeability,
+    aquifer strength) is a valid parameter of this deck once its '# ' is removed."""
+    from hmcore.case_init import starting_case, write_starting_case
+
+    deck = _punq_with_multnum(tmp_path)
+    start = starting_case(deck, "p", PUNQ_OBS_FULL)
+    case_path, _ = write_starting_case(start, tmp_path / "p.toml", PUNQ_OBS_FULL)
+    head, tail = case_path.read_text().split("# More parameters", 1)
+    tail = "\n".join(line[2:] if line.startswith("# ") else "" for line in tail.splitlines()[1:])
+    (tmp_path / "all.toml").write_text(head + tail)
+    case = load_case(tmp_path / "all.toml")
+    assert {"perm_multnum_1", "perm_multnum_2", "aquct_mult", "skin_PRO-11"} <= set(case.space.names)
+    assert len(case.space.names) == 5 + 6 + 2 + 1 + 2  # + SWCR (SWFN), SGCR (SGFN) shifts
+
+
+@pytest.mark.opm
+def test_stopping_at_the_last_observation_gives_the_same_misfit(tmp_path):
+    from hmcore.evaluation import evaluate
+    from hmcore.responses import last_time
+
+    obs = pd.read_csv(PUNQ_OBS_FULL)
+    obs[obs.days <= 1500].to_csv(tmp_path / "early.csv", index=False)
+    full = load_case(write_case_toml(tmp_path / "full.toml", observed=tmp_path / "early.csv",
+                                     history_end_days=None))
+    short = load_case(write_case_toml(tmp_path / "short.toml", observed=tmp_path / "early.csv",
+                                      history_end_days=None,
+                                      extra="[simulator]\nstop_at_last_observation = true"))
+    assert full.stop_step is None and short.stop_step is not None
+    assert short.observed.days.max() <= short.run_end_days < full.run_end_days
+    values = {"poro_mult": 1.1, "permx_mult": 1.4, "permy_mult": 1.4, "permz_mult": 0.8,
+              "skin": 3.0}
+    a = evaluate(full, values, tmp_path / "a")
+    b = evaluate(short, values, tmp_path / "b")
+    assert a.status.value == b.status.value == "COMPLETE", (a.reason, b.reason)
+    assert b.E == pytest.approx(a.E, rel=1e-6)
+    assert last_time(Path(b.run_dir) / "PUNQS3.SMSPEC") == pytest.approx(short.run_end_days)
+
+
+@pytest.mark.opm
+def test_wpimult_follows_every_compdat_of_its_well_and_changes_the_run(tmp_path):
+    from hmcore.deck import prepare_run_deck
+    from hmcore.deck_info import DeckInfo
+    from hmcore.parameters import Parameter, ParameterSpace
+    from hmcore.responses import read_responses
+    from hmcore.simulator import OpmFlow
+
+    info = DeckInfo.inspect(PUNQ_DECK)
+    space = ParameterSpace(parameters=(Parameter(name="pi4", kind="wpimult", wells=("PRO-4",),
+                                                 low=0.1, high=10.0),))
+    runs = {}
+    for value in (1.0, 0.2):
+        run_deck = prepare_run_deck(PUNQ_DECK, {"pi4": value}, space, tmp_path / f"r{value}", info)
+        text = run_deck.read_text()
+        assert text.count("\nCOMPDAT") == text.count("\nWPIMULT") == 1  # PUNQ-S3: one COMPDAT
+        assert text.index("\nWPIMULT\n 'PRO-4' ") > text.index("\nCOMPDAT")
+        result = OpmFlow().run(run_deck, tmp_path / f"r{value}")
+        r = read_responses(result.summary_path, ["PRO-4", "PRO-1"])
+        runs[value] = r.set_index(["well", "quantity", "days"]).value
+    bhp4 = runs[0.2].loc["PRO-4", "WBHP"]
+    base4 = runs[1.0].loc["PRO-4", "WBHP"]
+    assert (bhp4 < base4 - 1.0).any()  # a fifth of the PI: the well draws down harder
+
+
+@pytest.mark.opm
+def test_init_imports_a_summary_file(tmp_path):
+    from hmcore.deck import prepare_run_deck
+    from hmcore.deck_info import DeckInfo
+    from hmcore.parameters import ParameterSpace
+    from hmcore.responses import read_responses
+    from hmcore.simulator import OpmFlow
+
+    info = DeckInfo.inspect(PUNQ_DECK)
+    run_deck = prepare_run_deck(PUNQ_DECK, {}, ParameterSpace.reference(), tmp_path / "run", info)
+    smspec = OpmFlow().run(run_deck, tmp_path / "run").summary_path
+    out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(smspec),
+                                   "--out", str(tmp_path / "case" / "p.toml")])
+    assert out.exit_code == 0, out.output
+    case = load_case(tmp_path / "case" / "p.toml")
+    assert set(case.observed.well) == set(info.wells)
+    sim = read_responses(smspec, ["PRO-1"])
+    want = sim[(sim.quantity == "WBHP") & (sim.days > 0) & (sim.value > 0)].value.to_numpy()
+    got = case.observed[(case.observed.well == "PRO-1") & (case.observed.quantity == "WBHP")]
+    np.testing.assert_allclose(got.sort_values("days").value.to_numpy(), want, rtol=1e-5)
+
+
+def test_relperm_endpoint_shift_moves_the_critical_saturation():
+    from hmcore.deck import shift_endpoint
+
+    sw = np.array([0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 1.0])
+    krw = np.array([0, 0, 0.01, 0.05, 0.1, 0.2, 0.35, 0.5, 1.0])
+    up = shift_endpoint(sw, krw, 0.1)          # SWCR 0.25 -> 0.35
+    assert up[sw <= 0.35].max() == 0 and up[sw > 0.35].min() > 0
+    assert up[-1] == 1.0 and np.all(np.diff(up) >= 0)
+    down = shift_endpoint(sw, krw, -0.05)      # SWCR 0.25 -> 0.20
+    assert down[1] > 0
+    krow = np.array([1.0, 0.8, 0.6, 0.4, 0.2, 0.1, 0.02, 0, 0])
+    more = shift_endpoint(sw, krow, 0.1)       # SOWCR 0.2 -> 0.3: krow is 0 from Sw 0.7
+    assert more[sw >= 0.7].max() == 0 and more[0] == 1.0 and np.all(np.diff(more) <= 0)
+
+
+def test_relperm_endpoint_parameter_writes_a_table_opm_reads(tmp_path):
+    from hmcore.deck import prepare_run_deck
+    from hmcore.deck_info import DeckInfo, _parse
+    from hmcore.parameters import Parameter, ParameterSpace
+
+    info = DeckInfo.inspect(PUNQ_DECK)
+    space = ParameterSpace(parameters=(Parameter(name="swcr_shift", kind="relperm",
+                                                 keywords=("SWFN",), item=2, mode="endpoint",
+                                                 low=-0.1, high=0.2),))
+    run_deck = prepare_run_deck(PUNQ_DECK, {"swcr_shift": 0.15}, space, tmp_path / "run", info)
+    deck, _, _, _ = _parse(run_deck)
+    table = np.array(deck["SWFN"][0][0].get_raw_data_list()).reshape(-1, 3)
+    base = np.array(_parse(PUNQ_DECK)[0]["SWFN"][0][0].get_raw_data_list()).reshape(-1, 3)
+    crit = lambda t: t[np.flatnonzero(t[:, 1] <= 0)[-1], 0]  # noqa: E731
+    assert crit(table) > crit(base)
+    assert table[-1, 1] == pytest.approx(base[-1, 1])
