@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import tomlkit
 
@@ -72,12 +73,18 @@ def observed_from_summary(path: Path, info: DeckInfo) -> tuple[pd.DataFrame, tup
         raise CaseError([Problem(str(path), f"cannot read the summary file: {exc}",
                                  "give the .SMSPEC of a summary (with its .UNSMRY beside it)")])
     keys = set(smry.keys())
-    history = any(k.split(":")[0].endswith("H") for k in keys if ":" in k)
+    history = {k.split(":")[0][:-1] for k in keys if ":" in k and k.split(":")[0].endswith("H")}
     days = pd.Series(smry["TIME"]).astype(float).round(2).to_numpy()
     frames, skipped = [], []
+    if history:  # measured vectors only: the plain ones are a simulation's
+        unmatched = sorted(set(QUANTITIES) - history)
+        plain = sorted({k.split(":")[0] for k in keys if ":" in k} & set(unmatched))
+        if plain:
+            skipped.append(f"{path}: {plain} have no history vector (...H) here; the plain "
+                           "vectors are simulated values, not measurements: left out")
     for well in sorted(info.wells, key=natural_key):
         for q in QUANTITIES:
-            key = f"{q}H:{well}" if history else f"{q}:{well}"
+            key = (f"{q}H:{well}" if q in history else "") if history else f"{q}:{well}"
             if key in keys:
                 frames.append(pd.DataFrame({"well": well, "days": days, "quantity": q,
                                             "value": pd.Series(smry[key]).astype(float)}))
@@ -91,6 +98,8 @@ def observed_from_summary(path: Path, info: DeckInfo) -> tuple[pd.DataFrame, tup
                                  "export well rates and pressures into the summary")])
     table = pd.concat(frames, ignore_index=True)
     table = table[(table.days > 0) & (table.days <= info.end_days + 1e-6)]
+    # the report steps only: a summary also holds the simulator's own time steps between them
+    table = table[np.isin(table.days.round(2), np.round(info.report_days, 2))]
     closed = (table.quantity == "WBHP") & (table.value <= 0)  # the well not open yet (or shut)
     for well, n in table[closed].groupby("well").size().items():
         skipped.append(f"{path}: {n} WBHP value(s) of {well} are 0 (well not open): left out")
@@ -141,9 +150,9 @@ def optional_parameters(info: DeckInfo) -> tuple[Parameter, ...]:
     for table, what in (("SWOF", "SWCR"), ("SWFN", "SWCR"), ("SGOF", "SGCR"), ("SGFN", "SGCR")):
         if table in info.keyword_names:
             out.append(Parameter(name=f"{what.lower()}_shift", kind="relperm", keywords=(table,),
-                                 item=2, mode="endpoint", low=-0.05, high=0.1,
-                                 description=f"{what}: shift of the critical saturation of "
-                                 f"{table} column 2"))
+                                 item=2, mode="endpoint", low=0.0, high=0.1,
+                                 description=f"{what}: raise the critical saturation of "
+                                 f"{table} column 2 (a lower one needs table rows below it)"))
     for keyword, item, what, low, high in (("AQUCT", 4, "aquifer permeability", 0.1, 10.0),
                                            ("AQUFETP", 4, "aquifer volume", 0.1, 10.0)):
         if keyword in info.keyword_names:

@@ -336,7 +336,7 @@ def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[
                 out.append(f"INCLUDE\n  '{path}' /\n\n")
         elif block.keyword == "COMPDAT" and (skins or state["pimults"]):
             out.extend(_rewrite_compdat(block, skins, file).lines if skins else block.lines)
-            out.append(_wpimult_block(block, state["pimults"]))
+            out.append(_wpimult_block(block, state["pimults"], state["pi_applied"]))
         elif any(e.keyword == block.keyword for e in items):
             out.extend(_rewrite_items(block, [e for e in items if e.keyword == block.keyword],
                                       file).lines)
@@ -350,12 +350,40 @@ def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[
     return "".join(out)
 
 
-def _wpimult_block(compdat: Block, pimults: list[PiMultiplier]) -> str:
-    """WPIMULT for the targeted wells this COMPDAT block connects (empty when none)."""
-    named = {rec[0].strip("'\"") for rec in records(compdat.body) if rec}
-    lines = [f" '{w}' {m.factor:.10g} /\n" for m in pimults for w in m.wells if w in named]
-    return ("\n-- productivity multipliers added by hmflow\nWPIMULT\n" + "".join(lines)
-            + "/\n\n") if lines else ""
+def _wpimult_block(compdat: Block, pimults: list[PiMultiplier], applied: set) -> str:
+    """WPIMULT for the connections this COMPDAT block defines for the targeted wells: one
+    record per connection (well, I, J, K), so a connection defined once gets the factor once,
+    whatever other COMPDAT keywords the well has (a whole-well WPIMULT after each would
+    compound on the connections defined before). ``applied`` collects the wells reached."""
+    lines = []
+    for rec in records(compdat.body):
+        items = expand_repeats(rec)
+        if not items:
+            continue
+        name = items[0].strip("'\"")
+        coords = [_int_or_none(x) for x in items[1:5]] + [None] * (4 - len(items[1:5]))
+        i, j, k1, k2 = coords
+        for m in pimults:
+            for well in m.wells:
+                if not fnmatch.fnmatchcase(well, name):
+                    continue
+                applied.add(well)
+                if k1 is None:
+                    lines.append(f" '{well}' {m.factor:.10g} /\n")
+                    continue
+                ij = f"{i if i else '1*'} {j if j else '1*'}"
+                lines += [f" '{well}' {m.factor:.10g} {ij} {k} /\n"
+                          for k in range(k1, (k2 or k1) + 1)]
+    return ("\n-- productivity multipliers added by hmflow (one record per connection)\n"
+            "WPIMULT\n" + "".join(lines) + "/\n\n") if lines else ""
+
+
+def _int_or_none(token: str) -> int | None:
+    try:
+        value = int(float(token))
+    except ValueError:  # '1*' defaults, quoted text
+        return None
+    return value if value > 0 else None
 
 
 def _needs_inlining(path: Path, info: DeckInfo, skins: list[SetSkin], state: dict) -> bool:
@@ -376,9 +404,15 @@ def render_deck(info: DeckInfo, edits: list[Edit]) -> str:
     state = {"section": None, "multiplied": False, "done": set(),
              "items": [e for e in edits if isinstance(e, ItemMultiply)],
              "tables": [e for e in edits if isinstance(e, TableTransform)],
-             "pimults": [e for e in edits if isinstance(e, PiMultiplier)]}
+             "pimults": [e for e in edits if isinstance(e, PiMultiplier)], "pi_applied": set()}
     text = _render_file(info.path, info, mults, skins, state)
     missing = {e.keyword for e in state["items"] + state["tables"]} - state["done"]
+    unreached = sorted({w for e in state["pimults"] for w in e.wells} - state["pi_applied"])
+    if unreached:
+        raise CaseError([Problem(str(info.path), f"no COMPDAT connects {unreached}, so their "
+                                 "productivity multiplier (WPIMULT) would change nothing",
+                                 "name wells the deck completes, or move a COMPDAT that sits in "
+                                 "a large include file into the deck")])
     if missing:
         raise CaseError([Problem(str(info.path), f"the deck has no {sorted(missing)} keyword to edit",
                                  "choose a keyword the deck defines")])

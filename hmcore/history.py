@@ -10,7 +10,10 @@ A well in history mode is controlled by one of these rates (``CMODE``): the simu
 that quantity equals the measured one by construction, so it carries no information about the
 model. :func:`controlled_mask` marks such rows so the misfit leaves them out.
 
-Walks the deck as OPM's parser read it (``INCLUDE`` files expanded, ``N*`` defaults applied).
+Walks the deck as OPM's parser read it (``INCLUDE`` files expanded, ``N*`` defaults applied):
+``'*'`` names every well, ``'PROD*'`` a pattern; a defaulted rate is 0; ``WELOPEN`` shuts and
+opens wells (no rows while shut); ``WCONPROD``/``WCONINJE`` end a well's history mode. Not
+read: well lists (``'*LIST'``, reported), keywords inside ``ACTIONX`` (taken as unconditional).
 """
 
 from __future__ import annotations
@@ -139,20 +142,28 @@ def read_history(deck, report_days: tuple[float, ...], wells: dict) -> History:
                 close_steps(len(rec[0].get_raw_data_list()))
         elif name == "DATES":
             close_steps(len(kw))
+        elif name == "WELOPEN":
+            for rec in kw:
+                counts[name] = counts.get(name, 0) + 1
+                source = f"{name} record {counts[name]} at day {report_days[step]:g}"
+                items = _items(rec)
+                matched = _wells(str(items.get("WELL", "")), names, source, skipped)
+                if any(k in items and items[k] not in (0, "") for k in
+                       ("I", "J", "K", "C1", "C2")):
+                    skipped.append(f"{source}: opens or shuts single connections; the well's "
+                                   "history rows are kept")
+                    continue
+                is_open = str(items.get("STATUS", "OPEN")).upper() == "OPEN"
+                for well in matched:
+                    if well in active:
+                        kind, _, control, values, src = active[well]
+                        active[well] = (kind, is_open, control, values, src)
         elif name in ("WCONHIST", "WCONINJH", "WCONPROD", "WCONINJE"):
             for rec in kw:
                 counts[name] = counts.get(name, 0) + 1
                 source = f"{name} record {counts[name]} at day {report_days[step]:g}"
                 items = _items(rec)
-                pattern = str(items.get("WELL", ""))
-                if pattern.startswith("*"):
-                    skipped.append(f"{source}: well list '{pattern}' is not expanded; "
-                                   "name the wells one by one")
-                    continue
-                matched = [w for w in names if fnmatch.fnmatchcase(w, pattern)]
-                if not matched:
-                    skipped.append(f"{source}: well '{pattern}' is not defined in the deck")
-                    continue
+                matched = _wells(str(items.get("WELL", "")), names, source, skipped)
                 for well in matched:
                     if name in ("WCONPROD", "WCONINJE"):
                         active.pop(well, None)  # prediction mode: no measured rates
@@ -166,6 +177,19 @@ def read_history(deck, report_days: tuple[float, ...], wells: dict) -> History:
                     active[well] = (kind, is_open, control, values, source)
     close_steps(last - step)
     return History(tuple(intervals), tuple(skipped), frozenset(i.well for i in intervals))
+
+
+def _wells(pattern: str, names: list[str], source: str, skipped: list[str]) -> list[str]:
+    """The wells a record names: ``'*'`` is every well, ``'PROD*'`` a pattern; ``'*LIST'``
+    (a well list) is not expanded and is reported."""
+    if pattern.startswith("*") and len(pattern) > 1:
+        skipped.append(f"{source}: well list '{pattern}' is not expanded; name the wells one "
+                       "by one")
+        return []
+    matched = [w for w in names if fnmatch.fnmatchcase(w, pattern)]
+    if not matched:
+        skipped.append(f"{source}: well '{pattern}' is not defined in the deck")
+    return matched
 
 
 def _items(rec) -> dict[str, object]:
@@ -190,10 +214,9 @@ def _items(rec) -> dict[str, object]:
 def _producer(items: dict) -> tuple | str:
     status = str(items.get("STATUS", "OPEN")).upper()
     control = str(items.get("CMODE", "")).upper()
-    values = {q: float(items[k]) for q, k in (("WOPR", "ORAT"), ("WWPR", "WRAT"),
-                                              ("WGPR", "GRAT")) if k in items}
-    if not values:
-        return "no rate given"
+    # a defaulted rate is 0 (as in Eclipse and OPM): a dry well's measured water, say
+    values = {q: float(items.get(k, 0.0)) for q, k in (("WOPR", "ORAT"), ("WWPR", "WRAT"),
+                                                       ("WGPR", "GRAT"))}
     bhp = items.get("BHP")
     if isinstance(bhp, float) and bhp > 0:
         values["WBHP"] = bhp
@@ -206,13 +229,9 @@ def _injector(items: dict) -> tuple | str:
     quantity = INJECTED.get(phase)
     if quantity is None:
         return f"injector type '{phase}' is not matched (water and gas are)"
-    values = {}
-    if isinstance(items.get("RATE"), float):
-        values[quantity] = float(items["RATE"])
+    values = {quantity: float(items.get("RATE", 0.0))}  # defaulted: 0, as in the simulator
     bhp = items.get("BHP")
     if isinstance(bhp, float) and bhp > 0:
         values["WBHP"] = bhp
-    if not values:
-        return "neither rate nor BHP given"
     control = str(items.get("CMODE", "RATE")).upper()
     return WellKind.INJECTOR, status == "OPEN", control, values

@@ -169,12 +169,17 @@ def parse_dates(values: pd.Series) -> pd.Series:
     """ISO dates (``2015-01-21``, with a time or not) or Eclipse's ``21 JAN 2015`` /
     ``21-JAN-2015``; NaT where none fits."""
     text = values.map(lambda v: "" if pd.isna(v) else str(v).strip())
-    out = pd.to_datetime(text.where(text.str.match(r"^\d{4}-\d{2}-\d{2}")), errors="coerce",
-                         format="ISO8601")
+    iso = text.where(text.str.match(r"^\d{4}-\d{2}-\d{2}"))
+    try:  # a time zone is taken into UTC, then dropped (START has none)
+        out = pd.to_datetime(iso, errors="coerce", format="ISO8601", utc=True)
+    except (ValueError, TypeError):
+        out = pd.Series(pd.NaT, index=text.index, dtype="datetime64[ns, UTC]")
+    out = out.dt.tz_convert(None)
+    eclipse = text.str.upper().str.replace("JLY", "JUL", regex=False)  # Eclipse's July
     for fmt in ("%d %b %Y", "%d-%b-%Y"):
         rest = out.isna() & (text != "")
         if rest.any():
-            out[rest] = pd.to_datetime(text[rest].str.title(), errors="coerce", format=fmt)
+            out[rest] = pd.to_datetime(eclipse[rest].str.title(), errors="coerce", format=fmt)
     return out
 
 

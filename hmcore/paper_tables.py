@@ -62,6 +62,8 @@ def markdown(tables: dict[str, pd.DataFrame], title: str = "Match quality") -> s
 
 def cell(column: str, v) -> str:
     """One table value as the paper prints it (C_match columns of the well table: 2 decimals)."""
+    if v is None:  # a score with no record (stored as JSON null)
+        return "n/a"
     if isinstance(v, float):
         if not math.isfinite(v):
             return "n/a"

@@ -7,6 +7,7 @@ SPE9 (``../shared/spe9``, read in place) is turned into a history-matching deck 
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -209,6 +210,8 @@ def test_spe9_injector_rate_and_bhp_are_matched(spe9_case, tmp_path):
     ev = evaluate(case, truth, tmp_path / "run")
     assert ev.status.value == "COMPLETE", ev.reason
     s = score_responses(case, ev.responses)
+    # the injector's BHP is in E; its rate, fixed by the RATE control, is not
+    assert set(s["per_well_response"]["INJE1"]) == {"bhp"}
     assert s["per_well_response"]["INJE1"]["bhp"] < 0.05
     from hmcore.alignment import align
 
@@ -442,3 +445,96 @@ def test_relperm_endpoint_parameter_writes_a_table_opm_reads(tmp_path):
     crit = lambda t: t[np.flatnonzero(t[:, 1] <= 0)[-1], 0]  # noqa: E731
     assert crit(table) > crit(base)
     assert table[-1, 1] == pytest.approx(base[-1, 1])
+
+
+def test_wpimult_does_not_compound_on_a_well_completed_twice(tmp_path):
+    """PRO-4's layer 4 moved to a second COMPDAT later in the schedule: every connection of
+    the well gets the factor once (a whole-well WPIMULT after each COMPDAT would give 0.25)."""
+    from hmcore.deck import prepare_run_deck
+    from hmcore.deck_info import DeckInfo, _parse
+    from hmcore.parameters import Parameter, ParameterSpace
+    from tests.conftest import copy_punq_deck
+
+    deck = copy_punq_deck(tmp_path / "deck")
+    text = deck.read_text().replace("'PRO-4'     9   17   4   4   'OPEN'   2*  0.15  1*  5.0 /\n",
+                                    "", 1)
+    first_dates = text.index("\nDATES", text.index("COMPDAT"))
+    second = "\nCOMPDAT\n'PRO-4'     9   17   4   4   'OPEN'   2*  0.15  1*  5.0 /\n/\n"
+    deck.write_text(text[:first_dates] + "\nTSTEP\n 1 /\n" + second + text[first_dates:])
+    info = DeckInfo.inspect(deck)
+    space = ParameterSpace(parameters=(Parameter(name="pi4", kind="wpimult", wells=("PRO-4",),
+                                                 low=0.1, high=10.0),))
+    run_deck = prepare_run_deck(deck, {"pi4": 0.5}, space, tmp_path / "run", info)
+    _, _, base, _ = _parse(deck)
+    _, _, moved, _ = _parse(run_deck)
+    last = len(base.reportsteps) - 1
+    cf0 = {c.k: c.cf for c in base.get_well("PRO-4", last).connections()}
+    cf1 = {c.k: c.cf for c in moved.get_well("PRO-4", last).connections()}
+    assert set(cf0) == {3, 4}  # 0-based k of layers 4 and 5
+    for k in cf0:
+        assert cf1[k] == pytest.approx(0.5 * cf0[k], rel=1e-9)
+
+
+def _spe9_deck_with(tmp_path: Path, schedule: str) -> Path:
+    """SPE9's deck up to its schedule (producers only), then ``schedule``."""
+    text = SPE9.read_text()
+    head = text[:text.index("WCONINJE")]
+    head = re.sub(r"INCLUDE\s*\n\s*'?([A-Za-z0-9_.]+)'?\s*/",
+                  lambda m: f"INCLUDE\n  '{SPE9.parent / m.group(1)}' /", head)
+    head = "\n".join(line for line in head.splitlines() if "'INJE1'" not in line)
+    deck = tmp_path / "HIST.DATA"
+    deck.write_text(head + "\n" + schedule + "\nEND\n")
+    return deck
+
+
+@needs_spe9
+def test_history_reads_wildcards_defaults_welopen_and_the_end_of_history(tmp_path):
+    from hmcore.deck_info import DeckInfo
+
+    deck = _spe9_deck_with(tmp_path, """
+WCONHIST
+ 'PRODU*' 'OPEN' 'ORAT' 1000 1* 2000 1* 1* 1* 3000 /
+/
+TSTEP
+ 2*10 /
+WELOPEN
+ 'PRODU2' 'SHUT' /
+/
+TSTEP
+ 10 /
+WELOPEN
+ 'PRODU2' 'OPEN' /
+/
+WLIST
+ '*LIST' 'NEW' 'PRODU3' /
+/
+WCONHIST
+ '*LIST' 'OPEN' 'ORAT' 5 /
+/
+TSTEP
+ 10 /
+WCONPROD
+ '*' 'OPEN' 'ORAT' 100 4* 1000 /
+/
+TSTEP
+ 10 /
+""")
+    info = DeckInfo.inspect(deck)
+    table = info.history.observed_table()
+    p2 = table[table.well == "PRODU2"].pivot_table(index="days", columns="quantity",
+                                                    values="value")
+    assert list(p2.index) == [10.0, 20.0, 40.0]  # shut over (20, 30]; prediction after day 40
+    assert (p2.WWPR == 0).all() and (p2.WOPR == 1000).all() and (p2.WBHP == 3000).all()
+    assert set(table.well) == {f"PRODU{n}" for n in range(2, 27)}
+    assert table.days.max() == 40.0
+    assert any("well list '*LIST'" in s for s in info.history.skipped)
+
+
+def test_time_zones_and_eclipse_months_in_dates():
+    from hmcore.observed import parse_dates
+
+    got = parse_dates(pd.Series(["2015-01-21T00:00:00Z", "2015-01-21T02:00:00+02:00",
+                                 "1 JLY 2015", "21-jan-2015", "31/01/2015"]))
+    assert list(got[:4].dt.strftime("%Y-%m-%d")) == ["2015-01-21", "2015-01-21", "2015-07-01",
+                                                     "2015-01-21"]
+    assert pd.isna(got[4])

@@ -145,13 +145,13 @@ class ObservationSet:
     # ---------------------------------------------------------------- construction
     @classmethod
     def from_case(cls, case, heldout_fraction: float = 0.25) -> "ObservationSet":
-        """Rows of ``case.observed``; held back after ``case.history_end_days`` or, when the
+        """Rows of ``case.informative`` (all but history-controlled ones); held back after ``case.history_end_days`` or, when the
         case sets none, the last ``heldout_fraction`` of the record.
 
         Missing sigma is first estimated from the observed series themselves (signal changes
         inflate it: a conservative start); :meth:`refine` re-estimates it from the residuals
         of a calibrated model, where the simulator has taken the signal out."""
-        obs = case.observed
+        obs = case.informative  # rows a history control fixes tell nothing
         end = case.history_end_days
         if end is None:
             d0, d1 = float(obs.days.min()), float(obs.days.max())
