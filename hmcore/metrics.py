@@ -105,6 +105,8 @@ def compute_metrics(pairs: pd.DataFrame) -> dict:
     reasons = ratio_exclusions(pairs)
     for cat, q in CATEGORIES.items():
         rows = pairs.quantity == q
+        if cat in OPTIONAL and not rows.any():
+            continue  # injection rates: only for a history that has them
         left_out = rows & reasons.notna()
         sub = pairs[rows & ~left_out]
         categories[cat] = score(sub["observed"].to_numpy(), sub["simulated"].to_numpy())
@@ -120,7 +122,8 @@ def compute_metrics(pairs: pd.DataFrame) -> dict:
             if cat in DIAGNOSTIC:
                 s["n_excluded"] = int(left_out[g.index].sum())
             wells.setdefault(str(well), {})[cat] = s
-    macro = {k: _nanmean([categories[c][k] for c in PRIMARY]) for k in ("nmse", "r2")}
+    macro = {k: _nanmean([categories[c][k] for c in PRIMARY if c in categories])
+             for k in ("nmse", "r2")}
     macro["cmatch"] = cmatch(macro["nmse"]) if math.isfinite(macro["nmse"]) else float("nan")
     return {"macro": macro, "categories": categories, "wells": wells, "excluded": excluded}
 
@@ -134,7 +137,7 @@ def category_table(metrics: dict) -> pd.DataFrame:
     mac = metrics["macro"]
     injection = [c for c in OPTIONAL if cats.get(c, {}).get("n")]
     rows.append({"category": "macro (" + ", ".join(["oil", "water", "gas", "bhp", *injection]) + ")",
-                 "N": sum(metrics["categories"][c]["n"] for c in PRIMARY),
+                 "N": sum(cats[c]["n"] for c in PRIMARY if c in cats),
                  "NMSE": mac["nmse"], "R2": mac["r2"], "C_match": mac["cmatch"]})
     return pd.DataFrame(rows)
 
