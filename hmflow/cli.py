@@ -190,11 +190,7 @@ def init(deck: Path = typer.Option(..., "--deck", help="The field's deck (.DATA)
         start = starting_case(deck, case_name_, observed, summary)
         case_path, observed_path = write_starting_case(start, out, observed)
     except CaseError as exc:
-        err_console.print(f"[bold red]Cannot start a case from {deck}[/] - "
-                          f"{len(exc.problems)} problem(s):")
-        for p in exc.problems:
-            err_console.print(f"  [red]x[/] {p.where}\n      {p.what}"
-                              + (f"\n      fix: {p.fix}" if p.fix else ""), highlight=False)
+        print_problems(f"Cannot start a case from {deck}", exc.problems)
         raise typer.Exit(2)
     except FileExistsError as exc:
         err_console.print(f"[red]x[/] {exc}")
