@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import re
 import sys
 import tempfile
@@ -64,18 +63,11 @@ def run_truth(deck: Path, work: Path) -> tuple[pd.DataFrame, tuple[float, ...]]:
     return read_responses(result.summary_path, sorted(info.wells)), info.report_days
 
 
-def _ar1(rng: np.random.Generator, n: int) -> np.ndarray:
-    z = np.empty(n)
-    e = rng.standard_normal(n)
-    for t in range(n):
-        z[t] = e[t] if t == 0 else RHO * z[t - 1] + math.sqrt(1 - RHO * RHO) * e[t]
-    return z
-
-
 def measured(truth: pd.DataFrame, report_days: tuple[float, ...], seed: int) -> pd.DataFrame:
     """Wide table (well, days) -> noisy WOPR, WWPR, WGPR, WWIR, WBHP at the report days (the
     summary also holds the simulator's own time steps between them)."""
     from hmcore.results import natural_key
+    from hmcore.synthetic import ar1_series
 
     rng = np.random.default_rng(seed)
     at_report = np.isin(np.round(truth.days.to_numpy(float), 2), np.round(report_days[1:], 2))
@@ -86,8 +78,8 @@ def measured(truth: pd.DataFrame, report_days: tuple[float, ...], seed: int) -> 
         t = wide.loc[well].copy()
         for q in ("WOPR", "WWPR", "WGPR", "WWIR"):
             if q in t:
-                t[q] = np.maximum(t[q].to_numpy() * (1 + RATE_NOISE * _ar1(rng, len(t))), 0.0)
-        t["WBHP"] = t["WBHP"].to_numpy() + BHP_NOISE * _ar1(rng, len(t))
+                t[q] = np.maximum(t[q].to_numpy() * (1 + RATE_NOISE * ar1_series(rng, len(t), RHO)), 0.0)
+        t["WBHP"] = t["WBHP"].to_numpy() + BHP_NOISE * ar1_series(rng, len(t), RHO)
         out.append(t.assign(well=well).reset_index())
     return pd.concat(out, ignore_index=True)
 

@@ -614,7 +614,7 @@ def read_truth_responses(summary_path: Path) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True)
 
 
-def _ar1(rng: np.random.Generator, n: int, rho: float) -> np.ndarray:
+def ar1_series(rng: np.random.Generator, n: int, rho: float) -> np.ndarray:
     """Stationary AR(1) series of length ``n`` with unit variance and lag-1 correlation rho."""
     e = rng.standard_normal(n)
     z = np.empty(n)
@@ -659,20 +659,20 @@ def noisy_series(days: np.ndarray, wopr: np.ndarray, wbhp: np.ndarray, wgor: np.
     fdays = days[flowing]
     out = [NoisySeries("WOPR", days, wopr, np.full(days.size, np.nan), flowing)]
     sig = np.where(flowing, noise.bhp_flowing, noise.bhp_shut_in)
-    out.append(NoisySeries("WBHP", days, wbhp + sig * _ar1(rng, days.size, noise.rho), sig,
+    out.append(NoisySeries("WBHP", days, wbhp + sig * ar1_series(rng, days.size, noise.rho), sig,
                            flowing))
     gor = wgor[flowing]
     gas_bt = _breakthrough_mask(gor, noise.gas_breakthrough_ratio * gor[0]) if gor.size \
         else np.zeros(0, bool)
     sig = np.where(gas_bt, noise.gor_after, noise.gor_before) * gor
     out.append(NoisySeries("WGOR", fdays,
-                           np.maximum(gor + sig * _ar1(rng, gor.size, noise.rho), 0.0), sig,
+                           np.maximum(gor + sig * ar1_series(rng, gor.size, noise.rho), 0.0), sig,
                            np.ones(gor.size, bool)))
     wct = wwct[flowing]
     water_bt = _breakthrough_mask(wct, noise.water_breakthrough_wct)
     sig = np.where(water_bt, noise.wct_after, noise.wct_before)
     out.append(NoisySeries("WWCT", fdays,
-                           np.clip(wct + sig * _ar1(rng, wct.size, noise.rho), 0.0, 1.0), sig,
+                           np.clip(wct + sig * ar1_series(rng, wct.size, noise.rho), 0.0, 1.0), sig,
                            np.ones(wct.size, bool)))
     return out, gas_bt, water_bt
 
