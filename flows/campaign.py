@@ -19,7 +19,7 @@ from flows.labels import Progress, campaign_run_name, tag_flow_run
 from storage import ArtifactStore, EvaluationJournal
 from flows.refuse import USER_ERRORS, input_problems, refused
 from hmcore.case import load_case
-from tasks.case import deck_file_hashes, prepare_deck
+from tasks.case import deck_file_hashes, prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
 from tasks.reference import reference_name, reference_settings, run_references
 from tasks.results import archive_best, consolidate, report
@@ -51,8 +51,14 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
                              f"--campaign {campaign} --fork NEW (it records where it comes "
                              "from; this campaign is left as it is)")
         diff = {k: (before.get(k), v) for k, v in settings.items()
-                if k in before and k != "deck_files"
-                and _comparable(k, before[k]) != _comparable(k, v)}
+                if k in before and k not in ("deck_files", "case_artifact")
+                and before[k] != v}
+        case_changes = _case_changes(store_root, before.get("case_artifact"),
+                                     settings.get("case_artifact"))
+        if case_changes:
+            raise ValueError(f"campaign '{campaign}' in {store_root} was started on another "
+                             f"case: {'; '.join(case_changes)}. Set the stored values in the "
+                             "case file to resume it, or choose another --campaign name")
         if diff:
             raise ValueError(f"campaign '{campaign}' in {store_root} was started with other "
                              f"settings {diff} (stored, given); choose another --campaign name")
@@ -94,12 +100,21 @@ def _changed_files(before: dict | None, now: dict | None) -> str:
     return "; ".join(changed)
 
 
-def _comparable(key: str, value):
-    """The case is the same case when its stored content is: a new version of the same content
-    (written by newer hmflow code) resumes the campaign; other content never does."""
-    if key == "case_artifact" and isinstance(value, dict):
-        return value.get("content_hash")
-    return value
+def _case_changes(store_root: str, before: dict | None, given: dict | None) -> list[str]:
+    """How the given case differs in meaning from the one the campaign was started on (empty:
+    the same case). The same stored content is the same case; a version written again by newer
+    hmflow code (more settings stored, at their defaults) is too, and resumes the campaign."""
+    if not isinstance(before, dict) or not isinstance(given, dict):
+        return []
+    if before.get("content_hash") == given.get("content_hash"):
+        return []
+    store = ArtifactStore(store_root)
+    try:
+        stored = store.get(before["campaign"], before["step"], before["version"])
+        now = store.get(given["campaign"], given["step"], given["version"])
+        return stored_case_differences(stored, now)
+    except (LookupError, KeyError, FileNotFoundError, ValueError) as exc:
+        return [f"the stored case cannot be compared ({exc})"]
 
 
 Agent = Literal[AGENTS]  # a choice in the UI's run form

@@ -19,6 +19,9 @@ observed history is collected and raised together as one :class:`CaseError`::
     backend = "opm"                   # or a command template: "flow {deck} --output-dir={run_dir}"
     timeout_s = 900
     threads = 1                       # threads per run (a field-size deck: 2 or more)
+    processes = 1                     # MPI processes per run: needs a command backend that
+                                      # starts them, e.g. "mpirun -np {processes} flow {deck}
+                                      # --output-dir={run_dir} --threads-per-process={threads}"
     stop_at_last_observation = false  # end every run at the report step of the last
                                       # observation: cheaper, but no forecast beyond it
 
@@ -90,6 +93,11 @@ class SimulatorSettings(_Strict):
     backend: str = "opm"
     timeout_s: float = Field(default=900.0, gt=0)
     threads: int = Field(default=1, ge=1, le=256)  # per run; workers x threads <= cores
+    processes: int = Field(default=1, ge=1, le=1024)  # MPI processes per run (a command backend)
+
+    @property
+    def cores_per_run(self) -> int:
+        return self.threads * self.processes
     stop_at_last_observation: bool = False  # end runs at the last observed day (no forecast)
 
 
@@ -321,6 +329,18 @@ def load_case(case: str | Path) -> Case:
         from hmcore.validation import simulator_problems
 
         problems.extend(simulator_problems(backend, f"{path} key 'simulator.backend'"))
+    processes = (data.get("simulator") or {}).get("processes") if isinstance(
+        data.get("simulator"), dict) else None
+    from hmcore.validation import OPM_BACKENDS
+
+    if (isinstance(processes, int) and processes > 1
+            and (backend if isinstance(backend, str) else "opm") in OPM_BACKENDS):
+        problems.append(Problem(
+            f"{path} key 'simulator.processes'", f"{processes} MPI processes per run, but the "
+            "built-in OPM Flow (pip opm-simulators) is built without MPI and runs one process",
+            "start them with a command backend, e.g. backend = \"mpirun -np {processes} flow "
+            "{deck} --output-dir={run_dir}\" (a command-line OPM Flow built with MPI), or set "
+            "processes = 1 and use threads"))
     if info is not None:
         where = f"{path} [[parameters]]"
         deck_problems = _check_parameters(params, info, where)

@@ -33,7 +33,7 @@ from hmcore.history import WellKind
 from hmcore.parameters import MULTIREG_REGIONS, Parameter
 from hmcore.responses import QUANTITIES
 from hmcore.results import natural_key
-from hmcore.units import deck_unit
+from hmcore.units import DIMENSION_OF, Dimension, convert, deck_unit
 
 OBSERVED_COLUMNS = ["well", "days", "date", "quantity", "value", "units"]
 
@@ -63,19 +63,15 @@ def observed_from_history(info: DeckInfo) -> pd.DataFrame:
 
 
 def observed_from_summary(path: Path, info: DeckInfo) -> tuple[pd.DataFrame, tuple[str, ...]]:
-    """Well vectors of a summary file: ``WOPRH``-style history vectors when present (what a
-    production-database export or a history-mode run holds), else the plain vectors."""
-    from opm.io.ecl import ESmry
-
-    try:
-        smry = ESmry(str(path))
-    except Exception as exc:  # opm.io raises RuntimeError/ValueError on a bad file
-        raise CaseError([Problem(str(path), f"cannot read the summary file: {exc}",
-                                 "give the .SMSPEC of a summary (with its .UNSMRY beside it)")])
+    """Well vectors of a summary file (``.SMSPEC`` with its ``.UNSMRY``, or an ``.RSM`` text
+    summary): ``WOPRH``-style history vectors when present (what a production-database export
+    or a history-mode run holds), else the plain vectors; values in the deck's units (an RSM's
+    own units are converted, or refused by name)."""
+    smry, file_units = _summary(path, info)
     keys = set(smry.keys())
     history = {k.split(":")[0][:-1] for k in keys if ":" in k and k.split(":")[0].endswith("H")}
-    days = pd.Series(smry["TIME"]).astype(float).round(2).to_numpy()
-    frames, skipped = [], []
+    days = np.round(np.asarray(smry.days if file_units else smry["TIME"], dtype=float), 2)
+    frames, skipped, problems = [], [], []
     if history:  # measured vectors only: the plain ones are a simulation's
         unmatched = sorted(set(QUANTITIES) - history)
         plain = sorted({k.split(":")[0] for k in keys if ":" in k} & set(unmatched))
@@ -85,9 +81,24 @@ def observed_from_summary(path: Path, info: DeckInfo) -> tuple[pd.DataFrame, tup
     for well in sorted(info.wells, key=natural_key):
         for q in QUANTITIES:
             key = (f"{q}H:{well}" if q in history else "") if history else f"{q}:{well}"
-            if key in keys:
-                frames.append(pd.DataFrame({"well": well, "days": days, "quantity": q,
-                                            "value": pd.Series(smry[key]).astype(float)}))
+            if key not in keys:
+                continue
+            values = np.asarray(smry[key], dtype=float)
+            if file_units and not file_units[key].strip():
+                if DIMENSION_OF[q] is not Dimension.FRACTION:
+                    skipped.append(f"{path}: column {key} names no unit: read in the deck's "
+                                   f"{deck_unit(q, info.unit_system)}")
+            elif file_units:
+                try:
+                    values = convert(values, q, file_units[key], info.unit_system)
+                except ValueError as exc:
+                    problems.append(Problem(f"{path}: column {key}", str(exc),
+                                            f"give {q} in {deck_unit(q, info.unit_system)}"))
+                    continue
+            frames.append(pd.DataFrame({"well": well, "days": days, "quantity": q,
+                                        "value": values}))
+    if problems:
+        raise CaseError(problems)
     other = sorted({k.split(":")[1] for k in keys if ":" in k and k.startswith("W")}
                    - set(info.wells))
     if other:
@@ -97,13 +108,35 @@ def observed_from_summary(path: Path, info: DeckInfo) -> tuple[pd.DataFrame, tup
                                  + ("WOPRH, WBHPH..." if history else "WOPR, WBHP...") + ")",
                                  "export well rates and pressures into the summary")])
     table = pd.concat(frames, ignore_index=True)
-    table = table[(table.days > 0) & (table.days <= info.end_days + 1e-6)]
-    # the report steps only: a summary also holds the simulator's own time steps between them
-    table = table[np.isin(table.days.round(2), np.round(info.report_days, 2))]
+    table = table[(table.days > 0) & (table.days <= info.end_days + 1e-6) & table.value.notna()]
+    steps = np.round(info.report_days, 2)
+    steps = steps[(steps > 0) & (steps <= table.days.max())]
+    if len(steps) and np.isin(steps, table.days.unique()).mean() >= 0.9:
+        # written on this schedule by a simulator: its own time steps between the report
+        # steps are not measurements (a database export on its own dates is kept whole)
+        table = table[np.isin(table.days, steps)]
     closed = (table.quantity == "WBHP") & (table.value <= 0)  # the well not open yet (or shut)
     for well, n in table[closed].groupby("well").size().items():
         skipped.append(f"{path}: {n} WBHP value(s) of {well} are 0 (well not open): left out")
     return _finish(table[~closed], info), tuple(skipped)
+
+
+def _summary(path: Path, info: DeckInfo):
+    """(summary, units per key): an RSM file's own units, or None for a binary summary (in
+    the deck's units, as the simulator wrote it)."""
+    if path.suffix.lower() == ".rsm":
+        from hmcore.rsm import read_rsm
+
+        rsm = read_rsm(path, info.start)
+        return rsm, rsm.units
+    from opm.io.ecl import ESmry
+
+    try:
+        return ESmry(str(path)), None
+    except Exception as exc:  # opm.io raises RuntimeError/ValueError on a bad file
+        raise CaseError([Problem(str(path), f"cannot read the summary file: {exc}",
+                                 "give the .SMSPEC of a summary (with its .UNSMRY beside it), "
+                                 "or an .RSM text summary")])
 
 
 def _finish(table: pd.DataFrame, info: DeckInfo) -> pd.DataFrame:

@@ -108,11 +108,12 @@ def _failure_of(record: dict) -> FailureKind | None:
 
 
 def simulator_for(case: Case) -> Simulator:
-    """The case's simulator: its backend, timeout, threads per run and stop step."""
+    """The case's simulator: its backend, timeout, threads and processes per run, stop step."""
     from hmcore import simulator as simulators  # looked up when called (tests replace it)
 
     return simulators.make_simulator(case.simulator.backend, case.simulator.timeout_s,
-                                     case.simulator.threads, case.stop_step)
+                                     case.simulator.threads, case.stop_step,
+                                     case.simulator.processes)
 
 
 def score_responses(case: Case, responses: pd.DataFrame) -> dict:

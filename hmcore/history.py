@@ -12,8 +12,9 @@ model. :func:`controlled_mask` marks such rows so the misfit leaves them out.
 
 Walks the deck as OPM's parser read it (``INCLUDE`` files expanded, ``N*`` defaults applied):
 ``'*'`` names every well, ``'PROD*'`` a pattern; a defaulted rate is 0; ``WELOPEN`` shuts and
-opens wells (no rows while shut); ``WCONPROD``/``WCONINJE`` end a well's history mode. Not
-read: well lists (``'*LIST'``, reported), keywords inside ``ACTIONX`` (taken as unconditional).
+opens wells (no rows while shut); ``WCONPROD``/``WCONINJE`` end a well's history mode; a well
+list (``'*LIST'``) names the wells ``WLIST`` put in it up to that record (NEW, ADD, DEL, MOV).
+Not read: keywords inside ``ACTIONX`` (taken as unconditional).
 """
 
 from __future__ import annotations
@@ -117,6 +118,7 @@ def read_history(deck, report_days: tuple[float, ...], wells: dict) -> History:
     in_schedule = False
     active: dict[str, tuple[WellKind, bool, str, dict[str, float], str]] = {}
     counts: dict[str, int] = {}
+    lists: dict[str, list[str]] = {}  # well lists (WLIST) as they stand at this point
     intervals: list[Interval] = []
     skipped: list[str] = []
     last = len(report_days) - 1
@@ -142,12 +144,17 @@ def read_history(deck, report_days: tuple[float, ...], wells: dict) -> History:
                 close_steps(len(rec[0].get_raw_data_list()))
         elif name == "DATES":
             close_steps(len(kw))
+        elif name == "WLIST":
+            for rec in kw:
+                counts[name] = counts.get(name, 0) + 1
+                _well_list(rec, names, lists,
+                           f"{name} record {counts[name]} at day {report_days[step]:g}", skipped)
         elif name == "WELOPEN":
             for rec in kw:
                 counts[name] = counts.get(name, 0) + 1
                 source = f"{name} record {counts[name]} at day {report_days[step]:g}"
                 items = _items(rec)
-                matched = _wells(str(items.get("WELL", "")), names, source, skipped)
+                matched = _wells(str(items.get("WELL", "")), names, source, skipped, lists)
                 if any(k in items and items[k] not in (0, "") for k in
                        ("I", "J", "K", "C1", "C2")):
                     skipped.append(f"{source}: opens or shuts single connections; the well's "
@@ -163,7 +170,7 @@ def read_history(deck, report_days: tuple[float, ...], wells: dict) -> History:
                 counts[name] = counts.get(name, 0) + 1
                 source = f"{name} record {counts[name]} at day {report_days[step]:g}"
                 items = _items(rec)
-                matched = _wells(str(items.get("WELL", "")), names, source, skipped)
+                matched = _wells(str(items.get("WELL", "")), names, source, skipped, lists)
                 for well in matched:
                     if name in ("WCONPROD", "WCONINJE"):
                         active.pop(well, None)  # prediction mode: no measured rates
@@ -179,17 +186,49 @@ def read_history(deck, report_days: tuple[float, ...], wells: dict) -> History:
     return History(tuple(intervals), tuple(skipped), frozenset(i.well for i in intervals))
 
 
-def _wells(pattern: str, names: list[str], source: str, skipped: list[str]) -> list[str]:
-    """The wells a record names: ``'*'`` is every well, ``'PROD*'`` a pattern; ``'*LIST'``
-    (a well list) is not expanded and is reported."""
+def _wells(pattern: str, names: list[str], source: str, skipped: list[str],
+           lists: dict[str, list[str]]) -> list[str]:
+    """The wells a record names: ``'*'`` is every well, ``'PROD*'`` a pattern, ``'*LIST'`` the
+    wells of that list (WLIST) at this point of the schedule."""
     if pattern.startswith("*") and len(pattern) > 1:
-        skipped.append(f"{source}: well list '{pattern}' is not expanded; name the wells one "
-                       "by one")
-        return []
+        if pattern.upper() not in lists:
+            skipped.append(f"{source}: well list '{pattern}' is not defined by a WLIST "
+                           "before this record")
+            return []
+        return list(lists[pattern.upper()])
     matched = [w for w in names if fnmatch.fnmatchcase(w, pattern)]
     if not matched:
         skipped.append(f"{source}: well '{pattern}' is not defined in the deck")
     return matched
+
+
+def _well_list(rec, names: list[str], lists: dict[str, list[str]], source: str,
+               skipped: list[str]) -> None:
+    """Apply one WLIST record: NEW makes the list anew, ADD appends, DEL removes, MOV moves
+    the wells from every other list into this one (as OPM Flow does)."""
+    item = rec[2]
+    wanted = [str(item.get_str(k)) for k in range(len(item))]
+    items = _items(rec)
+    name, action = str(items.get("NAME", "")).upper(), str(items.get("ACTION", "")).upper()
+    wells = []
+    for w in wanted:
+        found = [n for n in names if fnmatch.fnmatchcase(n, w)]
+        if not found:
+            skipped.append(f"{source}: well '{w}' of list '{name}' is not defined in the deck")
+        wells += [n for n in found if n not in wells]
+    if action == "NEW":
+        lists[name] = wells
+    elif action in ("ADD", "MOV"):
+        if action == "MOV":
+            for other in lists.values():
+                other[:] = [w for w in other if w not in wells]
+        lists.setdefault(name, [])
+        lists[name] += [w for w in wells if w not in lists[name]]
+    elif action == "DEL":
+        if name in lists:
+            lists[name] = [w for w in lists[name] if w not in wells]
+    else:
+        skipped.append(f"{source}: WLIST action '{action}' is not NEW, ADD, MOV or DEL")
 
 
 def _items(rec) -> dict[str, object]:

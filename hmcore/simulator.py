@@ -176,16 +176,20 @@ class CommandLineSimulator:
     """Any simulator run as a shell-free command built from a template.
 
     Placeholders: ``{deck}`` (absolute deck path), ``{run_dir}``, ``{case}`` (deck name without
-    extension). The simulator must leave ``CASE.SMSPEC``/``CASE.UNSMRY`` in ``run_dir``.
+    extension), ``{threads}`` and ``{processes}`` (per run, from the case's ``[simulator]``).
+    The simulator must leave ``CASE.SMSPEC``/``CASE.UNSMRY`` in ``run_dir``.
     """
 
     template: str = ("flow {deck} --output-dir={run_dir} --enable-terminal-output=false "
                      "--threads-per-process=1")
     timeout_s: float = 600.0
     name: str = "command-line"
+    threads: int = 1
+    processes: int = 1
 
     def command(self, deck: Path, run_dir: Path) -> list[str]:
-        return [part.format(deck=deck, run_dir=run_dir, case=deck.stem)
+        return [part.format(deck=deck, run_dir=run_dir, case=deck.stem, threads=self.threads,
+                            processes=self.processes)
                 for part in shlex.split(self.template)]
 
     def run(self, deck: Path, run_dir: Path) -> SimulationResult:
@@ -194,14 +198,16 @@ class CommandLineSimulator:
 
 
 def make_simulator(spec: str | None, timeout_s: float = 600.0, threads: int = 1,
-                   stop_step: int | None = None) -> Simulator:
+                   stop_step: int | None = None, processes: int = 1) -> Simulator:
     """Build a simulator from a user string: ``None``/``"opm"`` or a command template.
 
     ``threads``: OpenMP threads per run (OPM's ``--threads-per-process``); ``stop_step``: end
-    each run after this report step. A command template states its own options and always
+    each run after this report step. A command template states its own options (``{threads}``
+    and ``{processes}`` stand for the case's threads and MPI processes per run) and always
     runs the whole schedule."""
     if spec in (None, "", "opm", "opm-flow"):
         extra = (() if threads == 1 else (f"--threads-per-process={threads}",)) + \
             (() if stop_step is None else (f"--hmflow-stop-step={stop_step}",))
         return OpmFlow(timeout_s=timeout_s, extra_args=extra)
-    return CommandLineSimulator(template=spec, timeout_s=timeout_s)
+    return CommandLineSimulator(template=spec, timeout_s=timeout_s, threads=threads,
+                                processes=processes)

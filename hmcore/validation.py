@@ -21,7 +21,7 @@ from hmcore.includes import deck_files
 from hmcore.parameters import RELPERM_COLUMNS, Parameter, ParameterKind, ParameterSpace
 
 OPM_BACKENDS = ("", "opm", "opm-flow")
-PLACEHOLDERS = ("deck", "run_dir", "case")
+PLACEHOLDERS = ("deck", "run_dir", "case", "threads", "processes")
 
 
 def did_you_mean(word: str, choices, cutoff: float = 0.6) -> str:

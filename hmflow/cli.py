@@ -172,8 +172,9 @@ def init(deck: Path = typer.Option(..., "--deck", help="The field's deck (.DATA)
          out: Optional[Path] = typer.Option(None, "--out", help="Case file to write (default: "
                                             "<deck name>.toml here); never overwritten"),
          summary: Optional[Path] = typer.Option(None, "--summary", help="Take the measured data "
-                                                "from this summary file (.SMSPEC) instead of the "
-                                                "deck's WCONHIST/WCONINJH records"),
+                                                "from this summary file (.SMSPEC, or an .RSM "
+                                                "text summary) instead of the deck's "
+                                                "WCONHIST/WCONINJH records"),
          observed: Optional[Path] = typer.Option(None, "--observed", help="Use this observed CSV "
                                                  "(well, days, quantity, value[, units]) as it is"),
          name: Optional[str] = typer.Option(None, "--name", help="Case name (default: from the "
@@ -339,7 +340,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
 
     storage = _folder("--storage", storage)
     c = _load(case)  # clear errors before any simulator time or Prefect start-up
-    workers = _fit_workers(workers, c.simulator.threads, task_runner)
+    workers = _fit_workers(workers, c.simulator.cores_per_run, task_runner)
     _check_agent(agent, budget, workers)
     _check_runner(task_runner)
     if fork is not None:
@@ -395,14 +396,15 @@ def _check_fork(fork: str, campaign: Optional[str], storage: Path) -> None:
 
 
 def _fit_workers(workers: int, threads: int, task_runner: str) -> int:
-    """Local runs: at most as many simulator threads at once as the machine has cores."""
+    """Local runs: at most as many simulator threads at once as the machine has cores
+    (``threads``: cores one run uses, its threads x MPI processes)."""
     import os
 
     cores = os.cpu_count() or 1
     if task_runner != "threads" or workers * threads <= cores:
         return workers
     fitted = max(1, cores // threads)
-    console.print(f"[yellow]note[/]: {workers} workers x {threads} threads per run would "
+    console.print(f"[yellow]note[/]: {workers} workers x {threads} cores per run would "
                   f"need {workers * threads} cores, this machine has {cores}: {fitted} "
                   f"worker(s)")
     return fitted
@@ -610,7 +612,7 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     prefect_environment(verbose)
     storage = _folder("--storage", storage)
     c = _load(case)
-    workers = _fit_workers(workers, c.simulator.threads, task_runner)
+    workers = _fit_workers(workers, c.simulator.cores_per_run, task_runner)
     chosen = list(AGENTS) if methods == "all" else [m.strip() for m in methods.split(",")
                                                     if m.strip()]
     unknown = [m for m in chosen if m not in AGENTS]

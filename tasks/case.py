@@ -76,3 +76,60 @@ def prepare_deck(case: Case, case_ref: str, store_root: str, campaign: str) -> A
 
     return store.put(campaign, "case", {"case": case_ref, **case_fingerprint(case)}, write,
                      code_version())
+
+
+ADDED_COLUMNS = {"controlled": False}
+"""History columns newer hmflow stores, and what a stored history without them meant."""
+
+_SETTINGS = {"misfit": "MisfitSettings", "simulator": "SimulatorSettings",
+             "physics": "PhysicsSettings"}
+_COMPARED = ("name", "time_tolerance_days", "history_end_days", "wells", "dims", "end_days")
+
+
+def _meaning(version: ArtifactVersion) -> dict:
+    """A stored case as the current code reads it: settings and parameters with today's
+    defaults for what an older version did not store; paths and the case file's bytes
+    (comments, layout) left out, the prepared deck by its files' hashes."""
+    import hmcore.case as case_models
+    from hmcore.parameters import Parameter
+
+    stored = version.read_json("case.json")
+    meaning = {k: stored.get(k) for k in _COMPARED}
+    for key, model in _SETTINGS.items():
+        cls = getattr(case_models, model)
+        for field, value in cls.model_validate(stored.get(key, {}), strict=False
+                                               ).model_dump(mode="json").items():
+            meaning[f"{key}.{field}"] = value
+    for p in stored.get("parameters", []):
+        for field, value in Parameter.model_validate(p, strict=False).model_dump(
+                mode="json").items():
+            meaning[f"parameter {p.get('name')}.{field}"] = value
+    files = version.manifest.get("files", {})
+    meaning["deck files"] = {k: v.get("sha256") for k, v in files.items()
+                             if k.startswith("deck/")}
+    return meaning
+
+
+def _history(version: ArtifactVersion):
+    observed = version.read_parquet("observed.parquet")
+    for column, absent in ADDED_COLUMNS.items():
+        if column not in observed:
+            observed[column] = absent
+    return observed[sorted(observed.columns)].reset_index(drop=True)
+
+
+def stored_case_differences(before: ArtifactVersion, after: ArtifactVersion) -> list[str]:
+    """What differs in meaning between two stored versions of a case (empty: the same case,
+    e.g. written again by newer hmflow code that stores more settings, at their defaults).
+    Each item names the setting and both values: 'physics.perm_cap_md: 20000.0 (stored),
+    None (given)'."""
+    old, new = _meaning(before), _meaning(after)
+    changes = [f"{k}: {old.get(k)!r} (stored), {new.get(k)!r} (given)"
+               for k in sorted(set(old) | set(new))
+               if k != "deck files" and old.get(k) != new.get(k)]
+    if old["deck files"] != new["deck files"]:
+        changes.append("the prepared deck's files differ")
+    h0, h1 = _history(before), _history(after)
+    if list(h0.columns) != list(h1.columns) or not h0.equals(h1):
+        changes.append("the history (observed.parquet) differs")
+    return changes

@@ -16,7 +16,7 @@ from hmcore.agents import AGENTS
 from hmcore.benchmark import LEVELS, per_run, summary
 
 pytestmark = pytest.mark.opm
-BUDGET, SEEDS = 6, 2
+BUDGET, SEEDS = 4, 2  # 4: the smallest budget every method runs (ES-MDA: 2 members, twice)
 
 
 def hmflow(*args: str, cwd: Path, timeout: int = 900) -> subprocess.CompletedProcess:

@@ -6,10 +6,10 @@ the diagnosis runs on the unmodified base model and must rank the hidden kind (a
 layer) first, select it, and improve the held-back misfit. A control with nothing hidden must
 report ``none``.
 
-Default run (CI): two seeded synthetic cases of different kinds (one through the Prefect
-flow and its CLI printing) and the control. ``-m slow``: the full sweep, every kind on several
-seeds, synthetic and PUNQ-S3 (measured data made from a truth run of PUNQS3.DATA with the
-effect applied), and the cases the diagnosis is known to miss today (KNOWN_MISSES: they stay
+Default run (CI): a seeded synthetic case with a hidden well skin, through the Prefect flow
+and its CLI printing, and the control with nothing hidden. ``-m slow``: two more seeded
+synthetic cases (an aquifer, a layer), the full sweep, every kind on several seeds, synthetic
+and PUNQ-S3 (measured data made from a truth run of PUNQS3.DATA with the effect applied), and the cases the diagnosis is known to miss today (KNOWN_MISSES: they stay
 in the sweep, asserting the same, so that a fix shows up as a pass).
 """
 
@@ -27,14 +27,17 @@ from hmcore.diagnosis.extensions import KINDS
 PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
 pytestmark = [pytest.mark.opm]
 
-DEFAULT_CASES = [pytest.param("aquifer_strength", 3, id="aquifer_strength-3"),
+DEFAULT_CASES = [pytest.param("aquifer_strength", 3, id="aquifer_strength-3",
+                              marks=pytest.mark.slow),
                  pytest.param("layer_permeability", 4, id="layer_permeability-4",
                               marks=pytest.mark.slow)]
 """layer_permeability-4 (layer 2 x3.25) scores chi2 15.0, at the line: found since candidates
 above the screen (8) are recalibrated too (fitted SSR -17.6, held-back -62). Slow since
 2026-11-23: its globals end at their bounds, so it pays for the restart from the deck's values
-(the suite took 27 min with it, over CI's ~25 min target); the default run keeps the aquifer,
-the flow's well skin and the control."""
+(the suite took 27 min with it, over CI's ~25 min target). aquifer_strength-3 (3.8 min) slow
+since 2026-11-25 for the same reason (the suite took 27.9 min on a clean clone of 34874f2):
+the default run keeps the flow's hidden well skin (through the Prefect flow and the CLI) and
+the control; `-m slow` runs both cases here and the whole sweep."""
 KNOWN_MISSES: list[tuple[str, int]] = []
 """Sweep of 2026-11-22 (seeds 11, 12 of every kind + control 6): the misses are sweep cases
 already - aquifer_strength-11 (a Fetkovich aquifer's PI x0.05: even the truth fits the fitted

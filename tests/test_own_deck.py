@@ -402,16 +402,79 @@ def test_init_imports_a_summary_file(tmp_path):
 
     info = DeckInfo.inspect(PUNQ_DECK)
     run_deck = prepare_run_deck(PUNQ_DECK, {}, ParameterSpace.reference(), tmp_path / "run", info)
+    # the simulator also writes the RSM text summary (RUNSUM, SEPARATE), as Eclipse does
+    run_deck.write_text(re.sub(r"^SUMMARY\b.*$", lambda m: m.group(0) + "\nRUNSUM\nSEPARATE\n",
+                               run_deck.read_text(), count=1, flags=re.M))
     smspec = OpmFlow().run(run_deck, tmp_path / "run").summary_path
-    out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(smspec),
-                                   "--out", str(tmp_path / "case" / "p.toml")])
-    assert out.exit_code == 0, out.output
-    case = load_case(tmp_path / "case" / "p.toml")
+    for summary, out_name in ((smspec, "p"), (smspec.with_suffix(".RSM"), "r")):
+        out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary",
+                                       str(summary), "--out", str(tmp_path / out_name / "p.toml")])
+        assert out.exit_code == 0, out.output
+    case = load_case(tmp_path / "p" / "p.toml")
     assert set(case.observed.well) == set(info.wells)
     sim = read_responses(smspec, ["PRO-1"])
     want = sim[(sim.quantity == "WBHP") & (sim.days > 0) & (sim.value > 0)].value.to_numpy()
     got = case.observed[(case.observed.well == "PRO-1") & (case.observed.quantity == "WBHP")]
     np.testing.assert_allclose(got.sort_values("days").value.to_numpy(), want, rtol=1e-5)
+    # the RSM gives the same rows and values (to its 7 significant digits)
+    binary, text = (pd.read_csv(tmp_path / d / "p_observed.csv") for d in ("p", "r"))
+    keys = ["well", "quantity", "days"]
+    both = binary.merge(text, on=keys, how="outer", suffixes=("_b", "_r"), indicator=True)
+    assert len(binary) > 2000 and (both._merge == "both").all()
+    np.testing.assert_allclose(both.value_r, both.value_b, rtol=2e-5, atol=1e-6)
+    assert (both.units_r == both.units_b).all()
+
+
+RSM_FIELD = """\
+1
+ ------------------------------------------------------------------------------------
+ SUMMARY OF RUN FIELD EXPORT
+ ------------------------------------------------------------------------------------
+ DATE         WOPRH        WBHPH        WGPRH        WWCTH
+              STB/DAY      PSIA         MSCF/DAY
+              *10**3
+              PRO-1        PRO-1        PRO-1        PRO-1
+
+ ------------------------------------------------------------------------------------
+ 1-FEB-1967      0.2000       3500.0       120.0        0.00
+ 1-MAR-1967      0.2100       3450.0       125.0        0.01
+ 1-JLY-1967      0.1900       3300.0       130.0        0.05
+"""
+
+
+def test_rsm_export_in_field_units_with_dates_is_converted_into_the_metric_deck(tmp_path):
+    """A production-database export as RSM: DATE column, FIELD units, a *10**3 multiplier,
+    history vectors; PUNQ-S3 is METRIC, so rates and pressures are converted."""
+    rsm = tmp_path / "export.RSM"
+    rsm.write_text(RSM_FIELD)
+    out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
+                                   "--out", str(tmp_path / "c" / "p.toml")])
+    assert out.exit_code == 0, out.output
+    obs = pd.read_csv(tmp_path / "c" / "p_observed.csv")
+    oil = obs[obs.quantity == "WOPR"].sort_values("days")
+    assert oil.days.tolist() == [31.0, 59.0, 181.0]          # 1-JLY-1967 is day 181
+    np.testing.assert_allclose(oil.value, np.array([200.0, 210.0, 190.0]) * 0.158987294928,
+                               rtol=1e-5)  # written to 6 significant digits
+    bhp = obs[obs.quantity == "WBHP"].sort_values("days")
+    np.testing.assert_allclose(bhp.value.iloc[0], 3500.0 * 0.0689475729, rtol=1e-5)
+    assert set(obs.units) == {"sm3/day", "bar", "fraction"}
+
+
+def test_a_broken_rsm_is_refused_with_every_line_named(tmp_path):
+    rsm = tmp_path / "bad.RSM"
+    rsm.write_text(RSM_FIELD.replace("*10**3", "x1000  ").replace("0.2100", "n/a")
+                   .replace(" 1-JLY-1967", " 1-XYZ-1967"))
+    out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
+                                   "--out", str(tmp_path / "c" / "p.toml")])
+    assert out.exit_code == 2 and not (tmp_path / "c").exists()
+    text = " ".join(out.output.split())
+    assert "bad.RSM:7" in text and "multiplier 'x1000' is not *10**N" in text
+    assert "bad.RSM:12" in text and "'n/a' is not a number" in text
+    assert "bad.RSM:13" in text and "DATE '1-XYZ-1967' is not a date" in text
+    rsm.write_text(RSM_FIELD.replace("PSIA", "PSIG"))
+    out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
+                                   "--out", str(tmp_path / "c" / "p.toml")])
+    assert out.exit_code == 2 and "gauge pressure" in " ".join(out.output.split())
 
 
 def test_relperm_endpoint_shift_moves_the_critical_saturation():
@@ -506,10 +569,14 @@ WELOPEN
  'PRODU2' 'OPEN' /
 /
 WLIST
- '*LIST' 'NEW' 'PRODU3' /
+ '*LIST' 'NEW' 'PRODU3' 'PRODU4' 'PRODU5' /
+ '*LIST' 'DEL' 'PRODU4' /
+ '*OTHER' 'MOV' 'PRODU5' /
+ '*OTHER' 'ADD' 'PRODU6' /
 /
 WCONHIST
  '*LIST' 'OPEN' 'ORAT' 5 /
+ '*OTHER' 'OPEN' 'ORAT' 7 /
 /
 TSTEP
  10 /
@@ -527,7 +594,11 @@ TSTEP
     assert (p2.WWPR == 0).all() and (p2.WOPR == 1000).all() and (p2.WBHP == 3000).all()
     assert set(table.well) == {f"PRODU{n}" for n in range(2, 27)}
     assert table.days.max() == 40.0
-    assert any("well list '*LIST'" in s for s in info.history.skipped)
+    # well lists as WLIST left them: *LIST = PRODU3 (PRODU4 deleted, PRODU5 moved to *OTHER)
+    last = table[table.days == 40.0].pivot_table(index="well", columns="quantity",
+                                                 values="value")
+    assert last.WOPR[["PRODU3", "PRODU4", "PRODU5", "PRODU6"]].tolist() == [5, 1000, 7, 7]
+    assert not any("well list" in s for s in info.history.skipped)
 
 
 def test_time_zones_and_eclipse_months_in_dates():

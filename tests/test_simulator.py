@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 import time
 from pathlib import Path
@@ -101,6 +102,42 @@ def test_command_line_flow_gives_the_same_bhp(truth_deck, truth_run, punq_info):
     diff = (a[common] - b[common]).abs()
     assert diff.max() < 4.0, diff.sort_values().tail()  # two OPM versions (2022.10 vs 2026.4)
     assert diff.mean() < 1.0
+
+
+@pytest.mark.opm
+@requires_flow_exe
+@pytest.mark.skipif(shutil.which("mpirun") is None, reason="no mpirun on PATH")
+def test_mpi_processes_per_run_through_the_command_template(truth_deck, truth_run, tmp_path):
+    """``processes = 2`` with a command that starts them: Debian's flow (built with MPI) runs
+    the deck on 2 processes and gives the single-process answer."""
+    run_deck = tmp_path / "mpi" / truth_deck.name
+    shutil.copytree(truth_deck.parent, run_deck.parent,
+                    ignore=shutil.ignore_patterns("*.SMSPEC", "*.UNSMRY", "*.UNRST", "*.EGRID",
+                                                  "*.INIT", "*.PRT", "*.DBG", "*.RSM"))
+    sim = make_simulator(f"mpirun --allow-run-as-root --oversubscribe -np {{processes}} {FLOW} "
+                         "{deck} --output-dir={run_dir} --enable-terminal-output=false "
+                         "--threads-per-process={threads}", timeout_s=600, processes=2)
+    assert sim.command(run_deck, run_deck.parent)[:6] == [
+        "mpirun", "--allow-run-as-root", "--oversubscribe", "-np", "2", FLOW]
+    res = sim.run(run_deck, run_deck.parent)
+    prt = (run_deck.parent / "PUNQS3.PRT").read_text(errors="replace")
+    assert re.search(r"Load balancing distributes \d+ active cells on 2 processes", prt)
+    a, b = bhp_table(res.summary_path), bhp_table(truth_run.summary_path)
+    common = a.index.intersection(b.index)
+    assert len(common) == len(b)
+    assert (a[common] - b[common]).abs().max() < 4.0  # 2022.10 on 2 processes vs 2026.4
+
+
+def test_mpi_processes_with_the_built_in_opm_flow_are_refused(tmp_path):
+    from hmcore.case import load_case
+    from hmcore.errors import CaseError
+    from conftest import write_case_toml
+
+    path = write_case_toml(tmp_path / "c.toml", extra="[simulator]\nprocesses = 2\n")
+    with pytest.raises(CaseError) as info:
+        load_case(path)
+    text = str(info.value)
+    assert "simulator.processes" in text and "without MPI" in text and "mpirun -np" in text
 
 
 # ----------------------------------------------------------------------------- failures

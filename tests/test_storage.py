@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import subprocess
 import tempfile
 import threading
@@ -513,10 +514,57 @@ def test_campaign_resumes_on_a_new_version_of_the_same_case_content(tmp_path):
 
     check_campaign_settings(str(tmp_path), "c", settings(1, "aaa"))
     check_campaign_settings(str(tmp_path), "c", settings(2, "aaa"))  # same content: resumes
-    with pytest.raises(ValueError, match="other settings"):
-        check_campaign_settings(str(tmp_path), "c", settings(3, "bbb"))
+    with pytest.raises(ValueError, match="another case: the stored case cannot be compared"):
+        check_campaign_settings(str(tmp_path), "c", settings(3, "bbb"))  # no such version
     with pytest.raises(ValueError, match="other settings"):
         check_campaign_settings(str(tmp_path), "c", {**settings(2, "aaa"), "seed": 1})
+
+
+def test_a_case_stored_by_older_code_is_the_same_case_and_a_changed_setting_is_named(tmp_path):
+    """A campaign started before hmflow stored more settings (a case.json without them, a
+    history without the 'controlled' column) resumes on today's version of the same case; a
+    case file with a comment added resumes too; a changed physics setting is refused, naming
+    the setting and both values."""
+    import json
+
+    from flows.campaign import check_campaign_settings
+    from hmcore.case import load_case
+    from hmcore.synthetic import ensure_synthetic_case
+    from storage import ArtifactStore
+    from tasks.case import prepare_deck
+
+    shutil.copytree(Path(ensure_synthetic_case()).parent, tmp_path / "syn")
+    root, toml = str(tmp_path / "store"), tmp_path / "syn" / "case.toml"
+    store = ArtifactStore(root)
+    today = prepare_deck.fn(load_case(toml), str(toml), root, "c")
+
+    def older(directory: Path) -> None:  # today's version as older code wrote it
+        shutil.copytree(today.path / "deck", directory / "deck")
+        shutil.copy(today.path / "case.toml", directory / "case.toml")
+        stored = json.loads((today.path / "case.json").read_text())
+        del stored["simulator"]["threads"], stored["physics"]["perm_cap_ratio"]
+        for p in stored["parameters"]:
+            del p["region_numbers"]
+        (directory / "case.json").write_text(json.dumps(stored))
+        today.read_parquet("observed.parquet").drop(columns="controlled").to_parquet(
+            directory / "observed.parquet", index=False)
+
+    old = store.put("c", "case", {"older": True}, older, "older")
+    assert old.ref()["content_hash"] != today.ref()["content_hash"]
+    settings = {"agent": "sac", "seed": 0}
+    check_campaign_settings(root, "c", {"case_artifact": old.ref(), **settings})
+    check_campaign_settings(root, "c", {"case_artifact": today.ref(), **settings})  # resumes
+
+    toml.write_text(toml.read_text() + "\n# a comment\n")
+    commented = prepare_deck.fn(load_case(toml), str(toml), root, "c")
+    assert commented.version > today.version
+    check_campaign_settings(root, "c", {"case_artifact": commented.ref(), **settings})
+
+    toml.write_text(toml.read_text() + "\n[physics]\nperm_cap_md = 20000\n")
+    capped = prepare_deck.fn(load_case(toml), str(toml), root, "c")
+    with pytest.raises(ValueError, match=r"another case: physics.perm_cap_md: None \(stored\), "
+                                         r"20000.0 \(given\)\. Set the stored values"):
+        check_campaign_settings(root, "c", {"case_artifact": capped.ref(), **settings})
 
 
 def test_journal_get_returns_one_record_or_none(tmp_path):
