@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 from uuid import UUID
 
-from hmcore.agents import AGENTS
+from hmcore.agents import METHODS
 from hmcore.case import BUILTIN_CASES, case_name
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timezone", default="UTC", help="IANA timezone of the cron (default %(default)s)")
     p.add_argument("--no-schedule", action="store_true", help="deploy without a schedule")
     p.add_argument("--case", default="synthetic", help="case TOML or 'synthetic' (default %(default)s)")
-    p.add_argument("--agent", default="sac", choices=list(AGENTS))
+    p.add_argument("--agent", default="sac", choices=list(METHODS))
     p.add_argument("--budget", type=int, default=200, help="simulator calls (default %(default)s)")
     p.add_argument("--workers", type=int, default=2, help="simulations at once (default %(default)s)")
     p.add_argument("--seed", type=int, default=0)

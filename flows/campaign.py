@@ -12,7 +12,7 @@ from typing import Annotated, Literal
 from prefect import flow, get_run_logger
 from pydantic import Field
 
-from hmcore.agents import AGENTS, make_proposer, method_version
+from hmcore.agents import METHODS, make_proposer, method_version
 from hmcore.calibration import Job, calibrate
 from hmcore.evaluation import SCORING_VERSION
 from flows.labels import Progress, campaign_run_name, tag_flow_run
@@ -32,7 +32,7 @@ DEFAULT_STORAGE = "./hmflow-storage"
 
 def default_campaign_name(case_name: str, agent: str, seed: int) -> str:
     """CASE-AGENT-seedS; a method's later version is another campaign (CASE-sac-v2-seedS)."""
-    version = method_version(agent) if agent in AGENTS else 1
+    version = method_version(agent) if agent in METHODS else 1
     tag = f"{agent}-v{version}" if version > 1 else agent
     return f"{case_name}-{tag}-seed{seed}"
 
@@ -117,7 +117,7 @@ def _case_changes(store_root: str, before: dict | None, given: dict | None) -> l
         return [f"the stored case cannot be compared ({exc})"]
 
 
-Agent = Literal[AGENTS]  # a choice in the UI's run form
+Agent = Literal[METHODS]  # a choice in the UI's run form
 
 
 @flow(name="hmflow-campaign", log_prints=True, flow_run_name=campaign_run_name)

@@ -26,12 +26,12 @@ def refused(exc: BaseException) -> State:
 def input_problems(agent: str | None = None, budget: int | None = None,
                    workers: int | None = None, task_runner: str | None = None) -> list[str]:
     """The parameter rules a flow checks itself (the case file is checked by loading it)."""
-    from hmcore.agents import AGENTS, budget_problem
+    from hmcore.agents import METHODS, budget_problem
     from flows.runners import RUNNERS
 
     problems = []
-    if agent is not None and agent not in AGENTS:
-        problems.append(f"agent must be one of {list(AGENTS)}, got {agent!r}")
+    if agent is not None and agent not in METHODS:
+        problems.append(f"agent must be one of {list(METHODS)}, got {agent!r}")
     elif agent is not None and budget is not None and workers is not None:
         problem = budget_problem(agent, budget, workers)
         if problem:

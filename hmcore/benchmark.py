@@ -99,6 +99,11 @@ def per_run(calls: pd.DataFrame, floor: float, centre: float, workers: int = 1) 
                                              if np.isfinite(b) and centre > floor else float("nan"))
             else:
                 row[f"gap_closed_{mark}"] = float("nan")
+        # the worst well's C_match at the best call (the robust-reward ablation's other judge)
+        valid = g["E"].where(g["status"] == "COMPLETE")
+        row["worst_well_cmatch"] = (float(g["worst_well_cmatch"].loc[valid.idxmin()])
+                                    if "worst_well_cmatch" in g and valid.notna().any()
+                                    else float("nan"))
         row["wall_min"] = (active_wall_s(g["finished_at"] - g["wall_time_s"], g["finished_at"])
                            / 60.0 if "finished_at" in g else float("nan"))
         row["sim_min"] = float(g["sim_time_s"].sum() / 60.0)
@@ -125,6 +130,8 @@ def summary(runs: pd.DataFrame) -> pd.DataFrame:
         row["best_E_median"] = float(g["best_E"].median())
         row["best_E_q25"] = float(g["best_E"].quantile(0.25))
         row["best_E_q75"] = float(g["best_E"].quantile(0.75))
+        row["worst_well_cmatch_median"] = (float(g["worst_well_cmatch"].median())
+                                           if "worst_well_cmatch" in g else float("nan"))
         row["failed"] = int(g["failed"].sum())
         row["penalised"] = int(g["penalised"].sum())
         row["wall_min_median"] = float(g["wall_min"].median())
@@ -138,17 +145,18 @@ def markdown(table: pd.DataFrame, floor: float, centre: float, case: str,
     """The summary as a Markdown table, methods ordered by median calls to 1.1x the floor."""
     order = table.sort_values(["calls_to_1.1x", "calls_to_1.2x", "best_E_median"])
     head = ("| method | seeds | calls | to 1.5x | to 1.2x | to 1.1x | gap closed at 25 / 50 / "
-            "100 / 200 | best E median [IQR] | failed | penalised | wall min (median) | "
-            "overhead |")
+            "100 / 200 | best E median [IQR] | worst well C_match at best | failed | penalised | "
+            "wall min (median) | overhead |")
     source = "the truth's own" if truth_known else "the deck's own values"
     lines = [f"Case **{case}**: floor E {floor:.6g} ({source}), prior-centre E {centre:.6g}. "
              "Calls to a level: the median over all seeds, a seed that never reached it "
              "counting as never (so 'never' when half or more missed); in brackets, the seeds "
-             "that reached it. Wall: running time (pauses over 5 min left out); overhead: wall time "
+             "that reached it. Worst well C_match at best: the lowest per-well C_match "
+             "(macro over BHP, oil, water, gas) of the best call (median). Wall: running time (pauses over 5 min left out); overhead: wall time "
              "over simulator time per worker, less 1 (median): everything but the simulator, "
              "idle worker slots included (a method that cannot fill W workers at every step, "
              "such as lm's serial steps or a CMA-ES generation's tail, shows it here).", "",
-             head, "|" + "---|" * 12]
+             head, "|" + "---|" * 13]
     for d in order.to_dict("records"):
         def level(lv: str) -> str:
             v, n = d[f"calls_to_{lv}x"], d[f"reached_{lv}x"]
@@ -158,11 +166,16 @@ def markdown(table: pd.DataFrame, floor: float, centre: float, case: str,
         gaps = " / ".join("-" if not math.isfinite(d[f"gap_closed_{m}"]) else
                           f"{d[f'gap_closed_{m}']:.2f}" for m in MARKS)
         lines.append(f"| {d['method']} | {d['seeds']} | {d['calls']} | {level('1.5')} | "
-                     f"{level('1.2')} | {level('1.1')} | {gaps} | {_best(d)} | {d['failed']} | "
+                     f"{level('1.2')} | {level('1.1')} | {gaps} | {_best(d)} | "
+                     f"{_percent(d.get('worst_well_cmatch_median'))} | {d['failed']} | "
                      f"{d['penalised']} | {d['wall_min_median']:.1f} | "
                      + (f"{d['overhead_median']:+.0%} |" if math.isfinite(d['overhead_median'])
                         else "n/a |"))
     return "\n".join(lines) + "\n"
+
+
+def _percent(v) -> str:
+    return f"{v:.1f} %" if v is not None and math.isfinite(v) else "n/a"
 
 
 def _best(d: dict) -> str:

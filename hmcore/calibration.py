@@ -37,7 +37,11 @@ def feedback_of(record: dict) -> Feedback:
     E = record.get("E")
     scored = E is not None and math.isfinite(E)
     e_obs = E if scored else record["penalty"]
-    return Feedback(float(record["reward"]), float(e_obs), scored)
+    worst = record.get("E_worst")
+    return Feedback(float(record["reward"]), float(e_obs), scored,
+                    float(record.get("penalty") or 0.0) if scored else 0.0,
+                    float(worst) if scored and worst is not None and math.isfinite(worst)
+                    else None)
 
 
 def calibrate(proposer: Proposer | Driver, space: ParameterSpace,

@@ -70,7 +70,8 @@ def observed_from_summary(path: Path, info: DeckInfo) -> tuple[pd.DataFrame, tup
     smry, file_units = _summary(path, info)
     keys = set(smry.keys())
     history = {k.split(":")[0][:-1] for k in keys if ":" in k and k.split(":")[0].endswith("H")}
-    days = np.round(np.asarray(smry.days if file_units else smry["TIME"], dtype=float), 2)
+    days = np.round(np.asarray(smry.days if file_units is not None else smry["TIME"],
+                               dtype=float), 2)
     frames, skipped, problems = [], [], []
     if history:  # measured vectors only: the plain ones are a simulation's
         unmatched = sorted(set(QUANTITIES) - history)
@@ -84,11 +85,11 @@ def observed_from_summary(path: Path, info: DeckInfo) -> tuple[pd.DataFrame, tup
             if key not in keys:
                 continue
             values = np.asarray(smry[key], dtype=float)
-            if file_units and not file_units[key].strip():
+            if file_units is not None and not file_units[key].strip():
                 if DIMENSION_OF[q] is not Dimension.FRACTION:
                     skipped.append(f"{path}: column {key} names no unit: read in the deck's "
                                    f"{deck_unit(q, info.unit_system)}")
-            elif file_units:
+            elif file_units is not None:
                 try:
                     values = convert(values, q, file_units[key], info.unit_system)
                 except ValueError as exc:

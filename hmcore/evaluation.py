@@ -63,6 +63,7 @@ class Evaluation:
     responses: pd.DataFrame | None = field(default=None, repr=False)
     violation_kinds: tuple[str, ...] = ()  # hmcore.physics.Check values, one per violation
     failure: FailureKind | None = None      # why a FAIL gave no result (None otherwise)
+    E_worst: float = float("nan")           # the worst well-response loss of the fitted part
 
     @property
     def selectable(self) -> bool:
@@ -83,7 +84,7 @@ class Evaluation:
                    num("E_heldout"), dict(record.get("metrics") or {}),
                    dict(record.get("heldout_metrics") or {}),
                    violation_kinds=tuple(record.get("violation_kinds") or ()),
-                   failure=_failure_of(record))
+                   failure=_failure_of(record), E_worst=num("E_worst"))
 
     def to_record(self) -> dict:
         """Flat JSON-friendly record (no responses table)."""
@@ -126,6 +127,7 @@ def score_responses(case: Case, responses: pd.DataFrame) -> dict:
     fit = align(case.fit_observed, responses, case.time_tolerance_days)
     m = misfit(fit.pairs, case.misfit.variant, case.misfit.robust_lambda, ranges)
     out = {"E": m.E, "per_response": m.per_response, "per_well_response": m.per_well_response,
+           "E_worst": m.worst,
            "coverage": fit.coverage, "metrics": compute_metrics(fit.pairs),
            "E_heldout": float("nan"), "heldout_metrics": {}, "pairs": fit.pairs}
     held = case.heldout_observed
@@ -189,4 +191,4 @@ def evaluate(case: Case, values: dict[str, float], run_dir: Path,
                       s["per_response"], s["coverage"], time.perf_counter() - start,
                       result.wall_time_s, str(run_dir), "; ".join(phys.violations),
                       phys.violations, s["E_heldout"], s["metrics"], s["heldout_metrics"],
-                      responses, phys.kinds)
+                      responses, phys.kinds, E_worst=s["E_worst"])

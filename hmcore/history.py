@@ -191,11 +191,11 @@ def _wells(pattern: str, names: list[str], source: str, skipped: list[str],
     """The wells a record names: ``'*'`` is every well, ``'PROD*'`` a pattern, ``'*LIST'`` the
     wells of that list (WLIST) at this point of the schedule."""
     if pattern.startswith("*") and len(pattern) > 1:
-        if pattern.upper() not in lists:
+        if pattern not in lists:
             skipped.append(f"{source}: well list '{pattern}' is not defined by a WLIST "
                            "before this record")
             return []
-        return list(lists[pattern.upper()])
+        return list(lists[pattern])
     matched = [w for w in names if fnmatch.fnmatchcase(w, pattern)]
     if not matched:
         skipped.append(f"{source}: well '{pattern}' is not defined in the deck")
@@ -209,9 +209,15 @@ def _well_list(rec, names: list[str], lists: dict[str, list[str]], source: str,
     item = rec[2]
     wanted = [str(item.get_str(k)) for k in range(len(item))]
     items = _items(rec)
-    name, action = str(items.get("NAME", "")).upper(), str(items.get("ACTION", "")).upper()
+    name, action = str(items.get("NAME", "")), str(items.get("ACTION", "")).upper()
     wells = []
     for w in wanted:
+        if w.startswith("*") and len(w) > 1:  # another list, as it stands now
+            if w not in lists:
+                skipped.append(f"{source}: well list '{w}' in list '{name}' is not defined "
+                               "by a WLIST before this record")
+            wells += [n for n in lists.get(w, []) if n not in wells]
+            continue
         found = [n for n in names if fnmatch.fnmatchcase(n, w)]
         if not found:
             skipped.append(f"{source}: well '{w}' of list '{name}' is not defined in the deck")

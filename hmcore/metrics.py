@@ -49,6 +49,17 @@ def cmatch(nmse_value: float) -> float:
     return 100.0 / (1.0 + nmse_value)
 
 
+def worst_well_cmatch(metrics: dict) -> float:
+    """The lowest C_match of any well (its macro NMSE over the primary categories), from a
+    :func:`compute_metrics` document; NaN when it has no well."""
+    worst = float("nan")
+    for cats in (metrics.get("wells") or {}).values():
+        e = _nanmean([cats[c]["nmse"] for c in PRIMARY if c in cats])
+        if math.isfinite(e):
+            worst = cmatch(e) if math.isnan(worst) else min(worst, cmatch(e))
+    return worst
+
+
 def score(y: np.ndarray, yhat: np.ndarray) -> dict:
     e = nmse(y, yhat) if len(y) else float("nan")
     return {"n": int(len(y)), "nmse": e, "r2": r2(y, yhat) if len(y) else float("nan"),

@@ -95,7 +95,7 @@ def _pages(path: Path, lines: list[str], problems: list[Problem]) -> list[_Page]
             header = lines[j + 3:end]
             n = len(header[0].split())
             names = _cells(header[0], n)
-            if n == 0 or len(names) != len(header[0].split()) or "" in names:
+            if n == 0 or names != header[0].split():
                 problems.append(Problem(f"{path}:{j + 4}", "the names line is not in "
                                         f"{WIDTH}-character columns", _FIX))
                 return pages
@@ -185,6 +185,8 @@ def read_rsm(path: Path, start: datetime | None = None) -> RsmSummary:
                 units[keys[k]] = page.units[k]
         if len(problems) > 50:
             break
+    if not problems and not series:
+        problems.append(Problem(str(path), "the RSM file holds no data row", _FIX))
     if problems:
         raise CaseError(problems[:50])
     days = np.array(sorted({d for s in series.values() for d in s}), dtype=float)

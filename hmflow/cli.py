@@ -17,7 +17,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from hmcore.agents import AGENTS
+from hmcore.agents import ABLATIONS, AGENTS, METHODS
 from hmcore.errors import CaseError
 from hmcore.units import deck_unit
 from hmflow.console import (Watch, bench_poll, campaign_poll, diagnosis_poll, prefect_environment,
@@ -273,7 +273,8 @@ def evaluate(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                           "(choose a new --out)")
         raise typer.Exit(2)
     out.mkdir(parents=True, exist_ok=True)
-    sim = (make_simulator(simulator, c.simulator.timeout_s) if simulator
+    sim = (make_simulator(simulator, c.simulator.timeout_s, c.simulator.threads,
+                          processes=c.simulator.processes) if simulator
            else simulator_for(c))
     ev = run_one(c, values, out / "run", sim)
     doc = metrics_document(ev)
@@ -411,10 +412,10 @@ def _fit_workers(workers: int, threads: int, task_runner: str) -> int:
 
 
 def _check_agent(agent: str, budget: int, workers: int) -> None:
-    from hmcore.agents import AGENTS, budget_problem
+    from hmcore.agents import METHODS, budget_problem
 
-    if agent not in AGENTS:
-        err_console.print(f"[red]x[/] --agent must be one of {list(AGENTS)}, got {agent!r}")
+    if agent not in METHODS:
+        err_console.print(f"[red]x[/] --agent must be one of {list(METHODS)}, got {agent!r}")
         raise typer.Exit(2)
     problem = budget_problem(agent, budget, workers)
     if problem:
@@ -594,7 +595,8 @@ def tables(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
 @app.command()
 def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
           methods: str = typer.Option("all", "--methods", help="Comma-separated methods, or "
-                                      "'all': " + ", ".join(AGENTS)),
+                                      "'all': " + ", ".join(AGENTS) + "; ablations: "
+                                      + ", ".join(ABLATIONS)),
           seeds: int = typer.Option(5, "--seeds", min=1, help="Seeds 0 .. K-1 for every method"),
           budget: int = typer.Option(100, "--budget", min=1, help="Simulator calls per method "
                                      "and seed (every run counts: Jacobian runs, ensemble "
@@ -615,10 +617,10 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     workers = _fit_workers(workers, c.simulator.cores_per_run, task_runner)
     chosen = list(AGENTS) if methods == "all" else [m.strip() for m in methods.split(",")
                                                     if m.strip()]
-    unknown = [m for m in chosen if m not in AGENTS]
+    unknown = [m for m in chosen if m not in METHODS]
     if unknown or not chosen:
         err_console.print(f"[red]x[/] --methods: unknown {unknown or 'none given'}; choose from "
-                          f"{list(AGENTS)}")
+                          f"{list(METHODS)}")
         raise typer.Exit(2)
     for m in chosen:
         _check_agent(m, budget, workers)
@@ -702,10 +704,10 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
         problems.append("--no-schedule takes no --cron or --interval")
     if case != "synthetic" and not Path(case).is_file():
         problems.append(f"--case {case}: no such file (a case TOML or 'synthetic')")
-    from hmcore.agents import AGENTS, budget_problem
+    from hmcore.agents import METHODS, budget_problem
 
-    if agent not in AGENTS:
-        problems.append(f"--agent must be one of {list(AGENTS)}, got {agent!r}")
+    if agent not in METHODS:
+        problems.append(f"--agent must be one of {list(METHODS)}, got {agent!r}")
     elif budget_problem(agent, budget, workers):
         problems.append(budget_problem(agent, budget, workers))
     from flows.runners import RUNNERS

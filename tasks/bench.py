@@ -12,6 +12,7 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 
 from hmcore import benchmark
+from hmcore.metrics import worst_well_cmatch
 from storage import ArtifactStore, EvaluationJournal, code_version
 
 @task(name="consolidate-benchmark", cache_policy=NO_CACHE)
@@ -40,7 +41,8 @@ def consolidate_bench(store_root: str, bench: str, campaigns: dict[str, tuple[st
             "phase": [r.get("phase") for r in rows],
             "wall_time_s": [r.get("wall_time_s") for r in rows],
             "sim_time_s": [r.get("sim_time_s") for r in rows],
-            "finished_at": [r.get("finished_at", np.nan) for r in rows]}))
+            "finished_at": [r.get("finished_at", np.nan) for r in rows],
+            "worst_well_cmatch": [worst_well_cmatch(r.get("metrics") or {}) for r in rows]}))
     calls = benchmark.best_so_far(pd.concat(frames, ignore_index=True))
     runs = benchmark.per_run(calls, floor, centre, workers)
     table = benchmark.summary(runs)

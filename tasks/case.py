@@ -104,6 +104,8 @@ def _meaning(version: ArtifactVersion) -> dict:
         for field, value in Parameter.model_validate(p, strict=False).model_dump(
                 mode="json").items():
             meaning[f"parameter {p.get('name')}.{field}"] = value
+    meaning["parameter order"] = [p.get("name") for p in stored.get("parameters", [])]
+    meaning["files the deck reads"] = (version.manifest.get("inputs") or {}).get("deck_files")
     files = version.manifest.get("files", {})
     meaning["deck files"] = {k: v.get("sha256") for k, v in files.items()
                              if k.startswith("deck/")}
@@ -124,6 +126,9 @@ def stored_case_differences(before: ArtifactVersion, after: ArtifactVersion) -> 
     Each item names the setting and both values: 'physics.perm_cap_md: 20000.0 (stored),
     None (given)'."""
     old, new = _meaning(before), _meaning(after)
+    for k in ("files the deck reads",):  # not stored by the oldest versions: not compared
+        if old.get(k) is None or new.get(k) is None:
+            old.pop(k, None), new.pop(k, None)
     changes = [f"{k}: {old.get(k)!r} (stored), {new.get(k)!r} (given)"
                for k in sorted(set(old) | set(new))
                if k != "deck files" and old.get(k) != new.get(k)]

@@ -3,6 +3,7 @@ Flow, a real Prefect server (temporary), real Parquet files; then a resumed benc
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -61,14 +62,27 @@ def test_bench_runs_every_method_and_seed_with_exactly_the_budgeted_calls(tmp_pa
         np.testing.assert_allclose(g.best.to_numpy(), expected)
     assert "| method |" in run.stdout
 
-    # a rerun with one more seed resumes: the done campaigns are replayed, only the new seed runs
+    # the worst well's C_match of every scored call, and at each run's best call
+    scored = calls.status != "FAIL"
+    assert calls[scored].worst_well_cmatch.between(0, 100).all()
+    assert table.worst_well_cmatch_median.notna().any()
+
+    # a rerun with one more seed and an ablation resumes: the done campaigns are replayed,
+    # only the new seed and the new method run
     before = {p: p.stat().st_mtime_ns for p in (tmp_path / "store").glob("b-*-s0/evaluations/*")}
-    more = hmflow(*common, "--methods", "random,lm", "--seeds", str(SEEDS + 1), cwd=tmp_path)
+    more = hmflow(*common, "--methods", "random,sac-robust", "--seeds", str(SEEDS + 1),
+                  cwd=tmp_path)
     assert more.returncode == 0, more.stdout[-3000:] + more.stderr[-3000:]
     assert {p: p.stat().st_mtime_ns for p in before} == before   # nothing rewritten
     newest = sorted((tmp_path / "store" / "b" / "benchmark").glob("v*"))[-1]
     again = pd.read_parquet(newest / "calls.parquet")
-    assert set(again.method) == {"random", "lm"} and set(again.seed) == {0, 1, 2}
+    assert set(again.method) == {"random", "sac-robust"} and set(again.seed) == {0, 1, 2}
+    assert (again.groupby(["method", "seed"]).size() == BUDGET).all()
+    folder = tmp_path / "store" / next(iter(bench_names("synthetic", ["sac-robust"], [0],
+                                                       "b")[2]))
+    assert json.loads((folder / "campaign.json").read_text())["agent"] == "sac-robust"
+    records = [json.loads(p.read_text()) for p in (folder / "evaluations").glob("*.json")]
+    assert any(r.get("E_worst") is not None and r["E_worst"] >= 0 for r in records)
 
 
 def test_summary_counts_levels_and_gap_from_the_calls():

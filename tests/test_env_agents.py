@@ -148,7 +148,33 @@ def test_feedback_for_failure_uses_penalty():
     from hmcore.calibration import feedback_of
 
     assert feedback_of({"reward": -10.0, "E": None, "penalty": 10.0}) == Feedback(-10.0, 10.0, False)
-    assert feedback_of({"reward": -0.5, "E": 0.4, "penalty": 0.1}) == Feedback(-0.5, 0.4, True)
+    assert feedback_of({"reward": -0.5, "E": 0.4, "penalty": 0.1}) == Feedback(-0.5, 0.4, True,
+                                                                               0.1)
+    assert feedback_of({"reward": -0.5, "E": 0.4, "penalty": 0.1, "E_worst": 0.9}).worst == 0.9
+
+
+def test_ablations_are_sac_with_one_setting_changed_and_learn_another_cost():
+    """The judge (reward, E) is the same for every method; an ablation changes what the agent
+    learns from: E without the penalty, or E + lambda x the worst well-response loss."""
+    from hmcore.agents import ABLATIONS, METHODS, method_version
+
+    assert set(ABLATIONS) <= set(METHODS) and all(b == "sac" for b, _ in ABLATIONS.values())
+    assert {method_version(m) for m in ABLATIONS} == {method_version("sac")}
+    robust, no_pen = make_proposer("sac-robust", 5, 0), make_proposer("sac-no-penalty", 5, 0)
+    assert isinstance(robust, SACProposer) and robust.settings.robust_lambda == 0.5
+    assert make_proposer("sac-replay-1", 5, 0).settings.gradient_steps == 1
+    assert make_proposer("sac-ent-fixed", 5, 0).settings.ent_coef == 0.01
+    penalised = Feedback(-0.5, 0.3, True, penalty=0.2, worst=0.8)
+    failed = Feedback(-10.0, 10.0, False)
+    default = make_proposer("sac", 5, 0)
+    assert [default.cost_of(f) for f in (penalised, failed)] == [0.5, 10.0]
+    assert no_pen.cost_of(penalised) == pytest.approx(0.3) and no_pen.cost_of(failed) == 10.0
+    assert robust.cost_of(penalised) == pytest.approx(0.5 + 0.5 * 0.8)
+    assert robust.cost_of(failed) == 10.0
+    props = no_pen.ask(2)
+    no_pen.tell(props, [penalised, Feedback(-0.4, 0.4)])
+    np.testing.assert_allclose(no_pen.model.replay_buffer.rewards[:2, 0],
+                               np.array([-0.3, -0.4]) * no_pen.settings.reward_scale, rtol=1e-6)
 
 
 def test_sac_learns_from_failures_capped_at_the_worst_scored_cost():

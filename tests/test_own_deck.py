@@ -471,6 +471,10 @@ def test_a_broken_rsm_is_refused_with_every_line_named(tmp_path):
     assert "bad.RSM:7" in text and "multiplier 'x1000' is not *10**N" in text
     assert "bad.RSM:12" in text and "'n/a' is not a number" in text
     assert "bad.RSM:13" in text and "DATE '1-XYZ-1967' is not a date" in text
+    rsm.write_text(RSM_FIELD[:RSM_FIELD.index(" 1-FEB")])  # a header and no row
+    out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
+                                   "--out", str(tmp_path / "c" / "p.toml")])
+    assert out.exit_code == 2 and "holds no data row" in " ".join(out.output.split())
     rsm.write_text(RSM_FIELD.replace("PSIA", "PSIG"))
     out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
                                    "--out", str(tmp_path / "c" / "p.toml")])
@@ -573,10 +577,12 @@ WLIST
  '*LIST' 'DEL' 'PRODU4' /
  '*OTHER' 'MOV' 'PRODU5' /
  '*OTHER' 'ADD' 'PRODU6' /
+ '*NEST' 'NEW' '*OTHER' /
 /
 WCONHIST
  '*LIST' 'OPEN' 'ORAT' 5 /
  '*OTHER' 'OPEN' 'ORAT' 7 /
+ '*NEST' 'OPEN' 'ORAT' 9 /
 /
 TSTEP
  10 /
@@ -594,10 +600,11 @@ TSTEP
     assert (p2.WWPR == 0).all() and (p2.WOPR == 1000).all() and (p2.WBHP == 3000).all()
     assert set(table.well) == {f"PRODU{n}" for n in range(2, 27)}
     assert table.days.max() == 40.0
-    # well lists as WLIST left them: *LIST = PRODU3 (PRODU4 deleted, PRODU5 moved to *OTHER)
+    # well lists as WLIST left them: *LIST = PRODU3 (PRODU4 deleted, PRODU5 moved to *OTHER);
+    # *NEST = the wells of *OTHER (PRODU5, PRODU6), as OPM's Schedule reads it
     last = table[table.days == 40.0].pivot_table(index="well", columns="quantity",
                                                  values="value")
-    assert last.WOPR[["PRODU3", "PRODU4", "PRODU5", "PRODU6"]].tolist() == [5, 1000, 7, 7]
+    assert last.WOPR[["PRODU3", "PRODU4", "PRODU5", "PRODU6"]].tolist() == [5, 1000, 9, 9]
     assert not any("well list" in s for s in info.history.skipped)
 
 

@@ -12,6 +12,10 @@ never run the simulator; the caller evaluates what they ask and journals every c
 | ``bo`` | Gaussian-process Bayesian optimisation | optuna (GPSampler) |
 | ``lm`` | bounded least squares on the whitened residuals, multi-start | scipy.optimize |
 | ``esmda`` | ensemble smoother with multiple data assimilation | iterative_ensemble_smoother |
+
+Ablations of ``sac`` (:data:`ABLATIONS`, issue 14) are methods too: ``sac`` with one setting
+changed, benchmarked at the same budget and judged by the same E. "Uniform proposals" is
+``random`` (``sac`` without its policy).
 """
 
 from hmcore.agents.base import Driver, Feedback, Proposal, Proposer
@@ -25,13 +29,28 @@ VERSIONS = {"sac": SAC_VERSION}
 (a resume under another version is refused; a benchmark names its campaigns after it)."""
 
 
+ABLATIONS: dict[str, tuple[str, dict]] = {
+    "sac-ent-fixed": ("sac", {"ent_coef": 0.01}),        # entropy fixed at auto's start value
+    "sac-replay-1": ("sac", {"gradient_steps": 1}),      # 1 update per call, not 8: less reuse
+    "sac-no-penalty": ("sac", {"penalty_in_reward": False}),  # learns E alone, without P
+    "sac-robust": ("sac", {"robust_lambda": 0.5}),       # learns E + 0.5 x worst well-response
+}
+"""Each ablation: the method it varies and the settings it changes."""
+
+METHODS = AGENTS + tuple(ABLATIONS)
+"""Everything a campaign or a benchmark can run."""
+
+
 def method_version(name: str) -> int:
-    return VERSIONS.get(name, 1)
+    return VERSIONS.get(ABLATIONS[name][0] if name in ABLATIONS else name, 1)
 
 
 def make_proposer(name: str, dim: int, seed: int, workers: int = 1, budget: int = 200,
                   **settings) -> Proposer | Driver:
     """Build a method by name (see the table above); ``settings`` go to the SAC variants."""
+    if name in ABLATIONS:
+        base, changed = ABLATIONS[name]
+        return make_proposer(base, dim, seed, workers, budget, **{**changed, **settings})
     if settings and name not in ("sac", "sac-paper"):
         raise ValueError(f"agent {name!r} takes no settings, got {sorted(settings)}")
     if name == "sac":
@@ -66,7 +85,7 @@ def make_proposer(name: str, dim: int, seed: int, workers: int = 1, budget: int 
         from hmcore.agents.esmda import ESMDADriver
 
         return ESMDADriver(dim, seed)
-    raise ValueError(f"agent must be one of {list(AGENTS)}, got {name!r}")
+    raise ValueError(f"agent must be one of {list(METHODS)}, got {name!r}")
 
 
 def budget_problem(name: str, budget: int, workers: int) -> str | None:
@@ -85,5 +104,5 @@ def budget_problem(name: str, budget: int, workers: int) -> str | None:
     return None
 
 
-__all__ = ["AGENTS", "VERSIONS", "method_version", "Driver", "Feedback", "Proposal", "Proposer", "RandomProposer",
+__all__ = ["ABLATIONS", "AGENTS", "METHODS", "VERSIONS", "method_version", "Driver", "Feedback", "Proposal", "Proposer", "RandomProposer",
            "SACProposer", "SACSettings", "budget_problem", "make_proposer"]

@@ -25,6 +25,8 @@ class Feedback:
     reward: float               # -E - P (or -failure_penalty - P)
     e_obs: float                # E of a scored run, the penalty of a failed one
     scored: bool = True         # False for a failed run (no E: its reward is the fixed penalty)
+    penalty: float = 0.0        # P: the physics penalty in the reward (ablations learn without)
+    worst: float | None = None  # the worst well-response loss (robust-reward ablation)
 
 
 class Proposer(Protocol):

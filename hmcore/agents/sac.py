@@ -58,6 +58,9 @@ class SACSettings:
     candidates: int = 0            # actions scored by the critic per proposal (0: a policy sample)
     trust_region: bool = True      # candidates inside a trust region around the incumbent
     spread: float = 0.25           # proposals of one batch at least this x the region's side apart
+    # ablations (issue 14): what the agent learns from; the campaign is judged the same way
+    penalty_in_reward: bool = True  # False: a scored run's learning cost is E, without P
+    robust_lambda: float = 0.0     # > 0: learning cost + this x the worst well-response loss
 
 
 class SACProposer:
@@ -146,19 +149,30 @@ class SACProposer:
         chosen += [k for k in order if k not in chosen][: n - len(chosen)]
         return cand[chosen]
 
+    def cost_of(self, f: Feedback) -> float:
+        """The cost the agent learns from: ``-reward`` (E + P, or a failed run's fixed penalty
+        + P), less P or plus ``robust_lambda`` x the worst well-response loss in an ablation."""
+        cost = -f.reward
+        if f.scored and not self.settings.penalty_in_reward:
+            cost -= f.penalty
+        if f.scored and self.settings.robust_lambda > 0 and f.worst is not None:
+            cost += self.settings.robust_lambda * f.worst
+        return float(cost)
+
     def tell(self, proposals: list[Proposal], feedback: list[Feedback]) -> None:
-        for p, f in zip(proposals, feedback, strict=True):
+        costs = [self.cost_of(f) for f in feedback]
+        for p, f, cost in zip(proposals, feedback, costs, strict=True):
             next_obs = observation(p.action, f.e_obs)
             self.model.replay_buffer.add(p.observation[None], next_obs[None], p.action[None],
-                                         np.array([f.reward * self.settings.reward_scale]),
+                                         np.array([-cost * self.settings.reward_scale]),
                                          np.array([True]), [{}])
             self.lanes.set(p.lane, next_obs)
-            self._costs.append((-f.reward, f.scored))
+            self._costs.append((cost, f.scored))
             self.n_told += 1
-            if self._best is None or f.reward > self._best[0]:
-                self._best = (f.reward, p.action)
+            if self._best is None or -cost > self._best[0]:
+                self._best = (-cost, p.action)
         self.region.update(np.stack([p.action for p in proposals]),
-                           np.array([-f.reward if f.scored else np.inf for f in feedback]))
+                           np.array([c if f.scored else np.inf for c, f in zip(costs, feedback)]))
         self.model.num_timesteps = self.n_told
         if self.n_told >= self.settings.learning_starts:
             self._bound_rewards()

@@ -103,6 +103,56 @@ def _evidence(conf: dict) -> str:
                    else "; the held-back history does not confirm it")
 
 
+def localise(residuals: dict | None, alpha: float) -> tuple[list[dict], float, int]:
+    """The residual findings still beyond noise after a family-wise correction: every well x
+    response x period of :func:`hmcore.diagnosis.residuals.analyse_residuals` makes two tests
+    (bias, trend), m in all - the fitted window's periods only: a held-back prediction also
+    carries the calibrated parameters' own error (a control with nothing hidden misses its
+    held-back oil rate at z 5.7, synthetic seed 6), which the noise model does not describe -;
+    a finding's |z| must exceed ``norm.isf(alpha / (2 m))`` (two-sided
+    Bonferroni: pure noise reaches it with probability at most ``alpha``). Returns (findings
+    strongest first - well, response, period, days, z_bias, z_trend -, the z line, m)."""
+    from scipy.stats import norm
+
+    stats = [(w, r, p, st) for w, resp in ((residuals or {}).get("wells") or {}).items()
+             for r, periods in resp.items() for p, st in periods.items()
+             if st.get("n") and p != "heldout"]
+    m = 2 * len(stats)
+    if not m:
+        return [], math.inf, 0
+    line = float(norm.isf(alpha / (2 * m)))
+    found = [{"well": w, "response": r, "period": p,
+              "days": [st.get("first_day"), st.get("last_day")],
+              "z_bias": float(st.get("z_bias", 0.0)), "z_trend": float(st.get("z_trend", 0.0)),
+              "bias": float(st.get("bias", 0.0))}
+             for w, r, p, st in stats
+             if max(abs(st.get("z_bias", 0.0)), abs(st.get("z_trend", 0.0))) > line]
+    found.sort(key=lambda f: -max(abs(f["z_bias"]), abs(f["z_trend"])))
+    return found, line, m
+
+
+def unexplained_cause(found: list[dict], line: float, m: int, alpha: float) -> dict:
+    """The ``unexplained`` cause: where the calibrated model misses beyond noise that no
+    candidate family explains (wells, responses, periods and days, strongest first)."""
+    def where(f: dict) -> str:
+        z = f["z_bias"] if abs(f["z_bias"]) >= abs(f["z_trend"]) else f["z_trend"]
+        what = "bias" if z == f["z_bias"] else "drift"
+        d0, d1 = f["days"]
+        days = f", days {d0:.0f}-{d1:.0f}" if d0 is not None and d1 is not None else ""
+        return f"{f['well']} {f['response']} ({f['period']}{days}): {what} z = {z:+.1f}"
+
+    wells = sorted({f["well"] for f in found}, key=natural_key)
+    return {"kind": "unexplained", "wells": wells, "layers": [], "score": None, "chi2": None,
+            "id": "unexplained", "where": found[:20],
+            "description": ("the calibrated model misses the data beyond noise where no "
+                            "candidate family explains it: " + "; ".join(where(f)
+                                                                         for f in found[:5])
+                            + (f"; and {len(found) - 5} more" if len(found) > 5 else "")),
+            "evidence": (f"residuals beyond noise at family-wise alpha {alpha:g} (|z| > "
+                         f"{line:.2f} over {m} bias and trend tests)"),
+            "machine": None, "confirmed": None}
+
+
 @dataclass(frozen=True)
 class Decision:
     """The ranked causes (``none`` marks the noise level), the selected candidate id (or
@@ -119,7 +169,8 @@ class Decision:
 
 def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dict[str, dict],
            ranking: dict, base: dict, base_heldout_per_well: dict, n_heldout_measured: int,
-           counts: dict, history_end_days: float, s: DiagnosisSettings) -> Decision:
+           counts: dict, history_end_days: float, s: DiagnosisSettings,
+           residuals: dict | None = None) -> Decision:
     """Rank the causes, select an extension (the best recalibrated fit beyond noise that the
     held-back history confirms) and say why.
 
@@ -127,7 +178,10 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
     screening document (``order``, ``beyond_noise``); ``base``: the calibrated model's scores
     (``E``, ``E_heldout``, ``ssr_fit``, ``ssr_heldout``); ``base_heldout_per_well``: its
     held-back E per well and response; ``counts``: ``n_fit``, ``n_heldout``,
-    ``n_fit_measured``, ``n_heldout_measured`` of the gain."""
+    ``n_fit_measured``, ``n_heldout_measured`` of the gain; ``residuals``: the calibrated
+    model's residual analysis - when no candidate fits the fitted history beyond noise and a
+    finding there is beyond noise (:func:`localise`), the first cause is ``unexplained``,
+    localised, not ``none``."""
     by_id = {c.id: c for c in candidates}
 
     def cause_of(cid: str, evidence: str) -> dict:
@@ -162,6 +216,13 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
         selected = confirmed_ok[0]
     verdict = _verdict(selected, confirmed_ok, confirmed, ranking, by_id,
                        base_heldout_per_well, n_heldout_measured, s)
+    # no family explains what remains beyond noise (none fits the fitted history beyond noise)
+    found, line, m = (localise(residuals, s.unexplained_alpha) if not confirmed_ok
+                      else ([], 0.0, 0))
+    if found:
+        causes.insert(0, unexplained_cause(found, line, m, s.unexplained_alpha))
+        verdict = (f"unexplained: {causes[0]['description']} ({causes[0]['evidence']}). "
+                   + verdict[0].upper() + verdict[1:])
     n_ho = n_heldout_measured  # the rate controls' residuals are 0, not noise
     heldout_quiet = n_ho == 0 or base["ssr_heldout"] <= heldout_noise_line(n_ho, s)
     if selected is None and not heldout_quiet:

@@ -24,6 +24,22 @@ def _f(v, digits: int = 4) -> str:
     return f"{v:.{digits}g}"
 
 
+def _unexplained(doc: dict, h2: str) -> list[str]:
+    """Where the calibrated model misses beyond noise, when that is the answer."""
+    first = doc["causes"][0] if doc["causes"] else {}
+    if first.get("kind") != "unexplained":
+        return []
+    lines = [f"{h2} Unexplained: where the model misses", "", first["evidence"] + ".", "",
+             "| well | response | period | days | bias (data units) | z bias | z trend |",
+             "|---|---|---|---|---|---|---|"]
+    for f in first.get("where", []):
+        d0, d1 = f["days"]
+        lines.append(f"| {f['well']} | {f['response']} | {f['period']} | {_f(d0, 5)}-"
+                     f"{_f(d1, 5)} | {_f(f['bias'], 4)} | {f['z_bias']:+.1f} | "
+                     f"{f['z_trend']:+.1f} |")
+    return lines + [""]
+
+
 def ranking_table(doc: dict, most: int = 15) -> str:
     lines = ["| rank | kind | wells | layers | score | chi2 | evidence | description |",
              "|---|---|---|---|---|---|---|---|"]
@@ -92,7 +108,8 @@ def markdown_report(doc: dict, level: int = 1) -> str:
              "Selected extension: " + (f"**{sel['kind']}** ({sel['id']}) - {sel['description']}"
                                        if sel else "**none**"), "",
              f"{h2} Gain", "", gain_table(doc), "", f"{h2} Ranked causes", "",
-             ranking_table(doc), "", f"{h2} Recalibrated candidates", "",
+             ranking_table(doc), ""] + _unexplained(doc, h2) + [
+             f"{h2} Recalibrated candidates", "",
              "Before: fitted SSR " + _f(doc["gain"]["ssr_fit_before"], 6) + ", held-back SSR "
              + _f(doc["gain"]["ssr_heldout_before"], 6) + ".", "", recalibration_table(doc), "",
              f"{h2} Misfit per well and response (E contributions)", "",

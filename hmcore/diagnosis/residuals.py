@@ -413,7 +413,8 @@ def _stats(days: np.ndarray, z: np.ndarray, resid: np.ndarray, rho: float) -> di
     infl = (1.0 + rho) / (1.0 - rho)
     n_eff = max(n / infl, 1.0)
     bias = float(np.mean(z))
-    out = {"n": n, "n_eff": n_eff, "bias": float(np.mean(resid)), "bias_std": bias,
+    out = {"n": n, "n_eff": n_eff, "first_day": float(days.min()), "last_day": float(days.max()),
+           "bias": float(np.mean(resid)), "bias_std": bias,
            "z_bias": bias * math.sqrt(n_eff), "rms_std": float(np.sqrt(np.mean(z ** 2))),
            "rms": float(np.sqrt(np.mean(resid ** 2))), "trend_std_per_year": 0.0, "z_trend": 0.0,
            "trend_per_year": 0.0}

@@ -66,6 +66,12 @@ class DiagnosisSettings:
     its noise, and noisy responses can raise it for the truth itself (PUNQ-S3, aquifer 2 x9.2:
     the truth's held-back E 11 % above the calibrated base's; synthetic fault seed 12: the
     hidden plane +2 %)."""
+    unexplained_alpha: float = 0.05
+    """When no candidate fits the fitted history beyond noise, a residual finding of the
+    calibrated model (a well's response, over a period, biased or drifting) still beyond noise
+    at this family-wise false-alarm rate makes the answer ``unexplained``, localised, instead
+    of ``none``: its |z| must exceed the Bonferroni line ``norm.isf(alpha / (2 m))`` over the
+    m bias and trend tests made (see :func:`hmcore.diagnosis.decision.localise`)."""
     tie_band: float = 10.0
     """Recalibrated candidates whose fitted SSR is within this of the best fit the fitted
     history cannot tell apart: the held-back history orders them."""

@@ -707,7 +707,7 @@ class Diagnosis:
             {"n_fit": self.obs.n_fit, "n_heldout": self.obs.n_heldout,
              "n_fit_measured": self.obs.n_noise("fit"),
              "n_heldout_measured": self.obs.n_noise("heldout")},
-            self.obs.history_end_days, self.settings)
+            self.obs.history_end_days, self.settings, self.residuals)
         shown = d.shown
         per_well = decision.per_well_table(
             base_sc["per_well_response"], base_ho,
