@@ -57,9 +57,10 @@ class _Page:
     rows: list[tuple[int, list[str]]] = field(default_factory=list)
 
 
-def _cells(line: str, n: int) -> list[str]:
-    """The first ``n`` 13-character header cells of ``line`` (after its leading space)."""
-    body = line[1:] if line.startswith(" ") else line
+def _cells(line: str, n: int, offset: int = 1) -> list[str]:
+    """The first ``n`` 13-character header cells of ``line``, from column ``offset`` (the
+    names line's: 1 after Eclipse's leading space)."""
+    body = line[offset:]
     return [body[i * WIDTH:(i + 1) * WIDTH].strip() for i in range(n)]
 
 
@@ -94,13 +95,14 @@ def _pages(path: Path, lines: list[str], problems: list[Problem]) -> list[_Page]
                 return pages
             header = lines[j + 3:end]
             n = len(header[0].split())
-            names = _cells(header[0], n)
+            offset = 1 if header[0].startswith(" ") else 0  # one offset for the whole page
+            names = _cells(header[0], n, offset)
             if n == 0 or names != header[0].split():
                 problems.append(Problem(f"{path}:{j + 4}", "the names line is not in "
                                         f"{WIDTH}-character columns", _FIX))
                 return pages
-            units = _cells(header[1], n) if len(header) > 1 else [""] * n
-            mults, wells = _multipliers_and_wells([_cells(h, n) for h in header[2:]], n)
+            units = _cells(header[1], n, offset) if len(header) > 1 else [""] * n
+            mults, wells = _multipliers_and_wells([_cells(h, n, offset) for h in header[2:]], n)
             scales = []
             for k, m in enumerate(mults):
                 found = _MULTIPLIER.match(m.replace(" ", "")) if m else None
@@ -127,7 +129,7 @@ def _time(page: _Page, cell: str, where: str, start: datetime | None,
         if start is None:
             problems.append(Problem(where, "a DATE column needs the deck's START date", _FIX))
             return None
-        for fmt in ("%d-%b-%Y", "%d-%B-%Y", "%d/%m/%Y", "%Y-%m-%d"):
+        for fmt in ("%d-%b-%Y", "%d-%B-%Y", "%Y-%m-%d"):  # never d/m/Y: US files read m/d/Y
             try:
                 when = datetime.strptime(cell.replace("JLY", "JUL"), fmt)
                 return (when - start).total_seconds() / 86400.0
@@ -136,10 +138,18 @@ def _time(page: _Page, cell: str, where: str, start: datetime | None,
         problems.append(Problem(where, f"DATE {cell!r} is not a date like 1-JAN-1967", _FIX))
         return None
     try:
-        return float(cell)
+        value = float(cell) * page.scales[0]
     except ValueError:
         problems.append(Problem(where, f"{page.names[0]} {cell!r} is not a number", _FIX))
         return None
+    unit = page.units[0].strip().upper()
+    if unit in ("", "DAYS", "DAY"):
+        return value
+    if unit in ("HOURS", "HOUR", "HRS", "HR"):  # a LAB deck's time
+        return value / 24.0
+    problems.append(Problem(where, f"{page.names[0]} in {page.units[0]!r}: expected DAYS or "
+                            "HOURS", _FIX))
+    return None
 
 
 def read_rsm(path: Path, start: datetime | None = None) -> RsmSummary:

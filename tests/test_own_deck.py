@@ -616,3 +616,38 @@ def test_time_zones_and_eclipse_months_in_dates():
     assert list(got[:4].dt.strftime("%Y-%m-%d")) == ["2015-01-21", "2015-01-21", "2015-07-01",
                                                      "2015-01-21"]
     assert pd.isna(got[4])
+
+
+RSM_TIME = """\
+1
+ ----------------------------------------------------------
+ SUMMARY OF RUN LAB EXPORT
+ ----------------------------------------------------------
+ TIME         WOPRH
+ HOURS        SCC/HR
+              PRO-1
+
+ ----------------------------------------------------------
+ 24.0         5.0
+ 48.0         6.0
+"""
+
+
+def test_rsm_time_column_honours_its_unit_and_a_file_without_the_leading_space(tmp_path):
+    """TIME in HOURS is read as days; a TIME unit that is no time is refused by line; a
+    file written without Eclipse's leading space is read with the same column offset."""
+    from hmcore.errors import CaseError
+    from hmcore.rsm import read_rsm
+
+    rsm = tmp_path / "lab.RSM"
+    rsm.write_text(RSM_TIME)
+    got = read_rsm(rsm)
+    np.testing.assert_allclose(got.days, [1.0, 2.0])
+    np.testing.assert_allclose(got["WOPRH:PRO-1"], [5.0, 6.0])
+    rsm.write_text("\n".join(line[1:] if line.startswith(" ") else line
+                             for line in RSM_TIME.splitlines()))
+    np.testing.assert_allclose(read_rsm(rsm).days, [1.0, 2.0])
+    rsm.write_text(RSM_TIME.replace("HOURS", "YEARS"))
+    with pytest.raises(CaseError) as err:
+        read_rsm(rsm)
+    assert "lab.RSM:10" in str(err.value) and "expected DAYS or HOURS" in str(err.value)
