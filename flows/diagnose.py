@@ -2,7 +2,10 @@
 report. Simulations are Prefect tasks submitted together (``workers`` at a time); every step's
 artifacts are stored as versioned artifacts of the campaign (steps ``diagnosis-calibration``,
 ``diagnosis-residuals``, ``diagnosis-ranking``, ``diagnosis-extension``,
-``diagnosis-recalibration``, ``diagnosis-report``; the report holds ``diagnosis.json``).
+``diagnosis-recalibration``, ``diagnosis-report``; the report holds ``diagnosis.json``). The
+rounds and windows of :mod:`hmcore.diagnosis.rounds` store theirs the same way: a second
+cause's round as ``diagnosis-2-calibration`` ... ``diagnosis-2-recalibration``, a later fitted
+window as ``diagnosis-later-...`` (and its second round ``diagnosis-later-2-...``).
 
 ``diagnose_command`` is the ``hmflow diagnose`` command (register it on the CLI's Typer app).
 """
@@ -20,7 +23,8 @@ from typing import Annotated, Any, Optional
 from prefect import flow, get_run_logger
 from pydantic import Field
 
-from hmcore.diagnosis import Diagnosis, DiagnosisSettings, budget_problem, parse_kinds
+from hmcore.diagnosis import (Diagnosis, DiagnosisSettings, budget_problem, diagnose_all,
+                              parse_kinds)
 from storage import sha256_json
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
@@ -152,12 +156,12 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
                    for v, d in zip(values_list, dirs)]
         return [f.result() for f in futures]
 
-    d = Diagnosis(loaded, evaluate_batch, diagnosis_settings, log=logger.info)
     previous: dict[str, Any] = {"case": case_version.ref()}
     versions = {}
 
     def store(step: str, files: dict[str, Any]):
-        inputs = {**previous, "settings": d.settings.to_dict(), "content": _content_hash(files)}
+        inputs = {**previous, "settings": diagnosis_settings.to_dict(),
+                  "content": _content_hash(files)}
         v = store_step(storage, campaign, step, inputs, files)
         previous.clear()
         previous.update({"case": case_version.ref(), "previous": v.ref()})
@@ -165,10 +169,13 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
         return v
 
     with make_runner(task_runner, workers, dask_address) as runner:
-        _steps(d, store, calibrated, initial)
-    doc = d.decide()
+        out = diagnose_all(loaded, evaluate_batch, calibrated=calibrated, initial=initial,
+                           settings=diagnosis_settings, log=logger.info,
+                           on_step=lambda name, d: store(f"diagnosis-{name}",
+                                                         step_files(name, d)))
+    doc = out.document
     with tempfile.TemporaryDirectory(prefix="hmflow-diagnosis-") as tmp:
-        d.report(Path(tmp))
+        out.report(Path(tmp))
         report_files = {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir())}
     rep = store("diagnosis-report", report_files)
     path = rep.file("diagnosis.json")
@@ -177,33 +184,34 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
     logger.info(f"diagnosis of {loaded.name}: {doc['verdict']}")
     return {"campaign": campaign, "storage": storage, "causes": doc["causes"],
             "selected": sel, "verdict": doc["verdict"], "gain": doc["gain"],
+            "accepted": doc.get("accepted", []),
             "diagnosis_path": str(path), "report_path": str(rep.file("report.md")),
             "campaign_report_path": str(whole.file("report.md")),
             "artifacts": {k: v.ref() for k, v in versions.items()},
-            "simulations": d.n_runs}
+            "simulations": doc["cost"]["simulations"]}
 
 
-def _steps(d: Diagnosis, store, calibrated, initial) -> None:
-    """The simulating steps, each stored as it ends."""
+def step_files(name: str, d: Diagnosis) -> dict[str, Any]:
+    """The files stored for step ``name`` of a round (``calibration``, ``2-ranking``,
+    ``later-recalibration``, ...; see :mod:`hmcore.diagnosis.rounds`)."""
     import pandas as pd
 
-    d.calibrate(calibrated, initial)
-    store("diagnosis-calibration", {"calibration.json": d.calibration,
-                                    "responses.parquet": d.base.responses.reset_index(drop=True)})
-    d.analyse()
-    store("diagnosis-residuals", {"residuals.json": d.residuals,
-                                  "observations.parquet": d.obs.rows})
-    d.rank()
-    sens = pd.DataFrame({k: v for k, v in d.sensitivity.items()})
-    store("diagnosis-ranking", {"ranking.json": d.ranking, "sensitivities.parquet": sens})
-    d.extend()
-    store("diagnosis-extension", {"extension.json": d.extension})
-    d.recalibrate()
+    step = name.rsplit("-", 1)[-1]
+    if step == "calibration":
+        return {"calibration.json": d.calibration,
+                "responses.parquet": d.base.responses.reset_index(drop=True)}
+    if step == "residuals":
+        return {"residuals.json": d.residuals, "observations.parquet": d.obs.rows}
+    if step == "ranking":
+        return {"ranking.json": d.ranking,
+                "sensitivities.parquet": pd.DataFrame({k: v for k, v in d.sensitivity.items()})}
+    if step == "extension":
+        return {"extension.json": d.extension}
     files = {"recalibration.json": d.recalibration}
     for cid, run in d.confirmed_runs.items():
         if run.responses is not None:
             files[f"responses_{_safe(cid)}.parquet"] = run.responses.reset_index(drop=True)
-    store("diagnosis-recalibration", files)
+    return files
 
 
 # ============================================================================ CLI
@@ -228,6 +236,12 @@ def print_diagnosis(result: dict, console=None, most: int = 8) -> None:
     sel = result["selected"]
     console.print(f"selected: [bold]{sel['kind']}[/] ({sel['id']}) - {sel['description']}"
                   if sel else "selected: [bold]none[/]")
+    for a in result.get("accepted", [])[1:]:  # forward selection: the second cause
+        g = a["gain"]
+        console.print(f"and, with it in the model: [bold]{a['kind']}[/] ({a['id']}) - "
+                      f"{a['description']} (fitted E {num(g['fit_before'])} -> "
+                      f"{num(g['fit_after'])}, held-back E {num(g['heldout_before'])} -> "
+                      f"{num(g['heldout_after'])})")
     console.print(result["verdict"], highlight=False)
     g = result["gain"]
     gt = Table(title="Gain (misfit E)")

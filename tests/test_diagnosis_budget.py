@@ -187,7 +187,7 @@ def test_the_flow_honours_workers_kinds_and_the_task_runner(tmp_path, monkeypatc
     monkeypatch.setattr(fd, "get_run_logger", lambda: logging.getLogger("test"))
     monkeypatch.setattr(fd, "prepare_deck", lambda *a: Version())
     monkeypatch.setattr(fd, "make_runner", Runner)
-    monkeypatch.setattr(fd, "Diagnosis", Stub)
+    monkeypatch.setattr("hmcore.diagnosis.rounds.Diagnosis", Stub)
     monkeypatch.setattr("flows.refuse.get_run_logger", lambda: logging.getLogger("test"))
     with pytest.raises(_Stop):
         fd.diagnose_flow.fn(case=str(case.source), storage=str(tmp_path / "s"), workers=3,

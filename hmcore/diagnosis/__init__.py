@@ -8,7 +8,9 @@ One job per module: :mod:`~hmcore.diagnosis.settings` (the knobs, ``--kinds``),
 (ranking the candidates), :mod:`~hmcore.diagnosis.recalibrate` (bounded Levenberg-Marquardt),
 :mod:`~hmcore.diagnosis.refit` (start points and restarts of the extended models),
 :mod:`~hmcore.diagnosis.decision` (accept or veto, the ranked causes),
-:mod:`~hmcore.diagnosis.workflow` (the steps, the budget), :mod:`~hmcore.diagnosis.report`
+:mod:`~hmcore.diagnosis.workflow` (one round's steps, the budget), :mod:`~hmcore.diagnosis.forward`
+(a second cause, with the first in the model), :mod:`~hmcore.diagnosis.origins` (a later fitted
+window), :mod:`~hmcore.diagnosis.rounds` (all of them, in order), :mod:`~hmcore.diagnosis.report`
 and :mod:`~hmcore.diagnosis.hidden` (hidden-effect test cases).
 
 Free of Prefect: the simulator is reached only through an injected ``evaluate_batch``.
@@ -19,11 +21,11 @@ from hmcore.diagnosis.extensions import KINDS, Candidate, build_candidates, exte
 from hmcore.diagnosis.recalibrate import Coordinates, LevenbergMarquardt, LMSettings, run_lockstep
 from hmcore.diagnosis.residuals import ObservationSet, analyse_residuals, estimate_noise
 from hmcore.diagnosis.settings import DiagnosisSettings, parse_kinds
-from hmcore.diagnosis.workflow import (Diagnosis, budget_problem, diagnose, local_evaluator,
-                                       minimum_runs)
+from hmcore.diagnosis.workflow import Diagnosis, budget_problem, local_evaluator, minimum_runs
+from hmcore.diagnosis.rounds import diagnose, diagnose_all
 
 __all__ = ["KINDS", "Candidate", "Coordinates", "Diagnosis", "DiagnosisSettings",
            "LMSettings", "LevenbergMarquardt", "ObservationSet", "Score", "analyse_residuals",
-           "budget_problem", "build_candidates", "diagnose", "estimate_noise", "extended_space",
+           "budget_problem", "build_candidates", "diagnose", "diagnose_all", "estimate_noise", "extended_space",
            "local_evaluator", "minimum_runs", "parse_kinds", "projector_basis", "run_lockstep",
            "score_test"]

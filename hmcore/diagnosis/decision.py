@@ -95,6 +95,18 @@ def cause(c: Candidate, score: Score | None, conf: dict | None, evidence: str) -
             "confirmed": None if conf is None else {k: conf[k] for k in CAUSE_CONFIRMED_KEYS}}
 
 
+def accepted_cause(cause: dict, conf: dict, round_: int) -> dict:
+    """An accepted cause with its own gain: E before (the model without it) and after its
+    recalibration, and the whitened SSR drops (``conf``: its recalibration record)."""
+    return {"id": cause["id"], "kind": cause["kind"], "wells": cause["wells"],
+            "layers": cause["layers"], "description": cause["description"], "round": round_,
+            "value": conf["value"],
+            "gain": {k: conf[k] for k in ("fit_before", "fit_after", "heldout_before",
+                                          "heldout_after")},
+            "delta_ssr_fit": conf["delta_ssr_fit"],
+            "delta_ssr_heldout": conf["delta_ssr_heldout"]}
+
+
 def _evidence(conf: dict) -> str:
     text = "recalibrated: the fitted misfit drops beyond noise"
     if conf.get("tied"):
@@ -157,7 +169,8 @@ def unexplained_cause(found: list[dict], line: float, m: int, alpha: float) -> d
 class Decision:
     """The ranked causes (``none`` marks the noise level), the selected candidate id (or
     None), the verdict, whether the calibrated model fits the held-back history within noise,
-    the gain, and the recalibrated candidate whose per-well table is shown."""
+    the gain, the recalibrated candidate whose per-well table is shown, and the recalibrated
+    candidates that fit the fitted history beyond noise (held-back confirmed first)."""
 
     causes: list[dict]
     selected: str | None
@@ -165,6 +178,7 @@ class Decision:
     heldout_quiet: bool
     gain: dict
     shown: str | None
+    fits: tuple[str, ...] = ()
 
 
 def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dict[str, dict],
@@ -244,7 +258,8 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
             **counts}
     shown = selected or (confirmed_ok[0] if confirmed_ok else
                          (next(iter(confirmed)) if confirmed else None))
-    return Decision(causes, selected, verdict, bool(heldout_quiet), gain, shown)
+    return Decision(causes, selected, verdict, bool(heldout_quiet), gain, shown,
+                    tuple(confirmed_ok))
 
 
 def _verdict(selected: str | None, confirmed_ok: list[str], confirmed: dict[str, dict],

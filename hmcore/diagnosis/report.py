@@ -40,6 +40,51 @@ def _unexplained(doc: dict, h2: str) -> list[str]:
     return lines + [""]
 
 
+def _accepted(doc: dict, h2: str) -> list[str]:
+    """Each accepted cause with its own gain (over the model without it), and what the second
+    round of the forward selection did."""
+    acc = doc.get("accepted") or []
+    lines = []
+    if acc:
+        lines += [f"{h2} Accepted causes", "",
+                  "Each gain is over the model without that cause (round 2: with round 1's "
+                  "cause in the model).", "",
+                  "| round | cause | value | fitted E before | after | held-back E before | "
+                  "after | fitted SSR drop | held-back SSR drop |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for a in acc:
+            g = a["gain"]
+            lines.append(f"| {a['round']} | {a['id']} - {a['description']} | {_f(a['value'])} | "
+                         f"{_f(g['fit_before'], 5)} | {_f(g['fit_after'], 5)} | "
+                         f"{_f(g['heldout_before'], 5)} | {_f(g['heldout_after'], 5)} | "
+                         f"{_f(a['delta_ssr_fit'], 5)} | {_f(a['delta_ssr_heldout'], 5)} |")
+        lines.append("")
+    for r in doc.get("rounds") or []:
+        lines += [f"Round 2 ({r['simulations']} simulations, "
+                  f"{'tentatively ' if r['tentative'] else ''}with `{r['builds_on']}` in the "
+                  f"model): {r['verdict']}", ""]
+    if doc.get("no_second_round") and acc:
+        lines += [f"No second round: {doc['no_second_round']}.", ""]
+    return lines
+
+
+def _windows(doc: dict, h2: str) -> list[str]:
+    """The fitted windows diagnosed, in time order, and which named the answer."""
+    wins = doc.get("windows") or []
+    if not wins:
+        return []
+    named = (doc.get("named_on") or {}).get("fitted_to_day")
+    lines = [f"{h2} Fitted windows (rolling origin)", "",
+             "| history fitted to day | accepted | first cause | held-back fitted within noise "
+             "| named the answer |", "|---|---|---|---|---|"]
+    for w in wins:
+        lines.append(f"| {_f(w['fitted_to_day'], 6)} | {', '.join(w['accepted']) or '-'} | "
+                     f"{w['first_cause'] or '-'} | "
+                     f"{'yes' if w['heldout_within_noise'] else 'no'} | "
+                     f"{'yes' if named == w['fitted_to_day'] else ''} |")
+    return lines + [""]
+
+
 def ranking_table(doc: dict, most: int = 15) -> str:
     lines = ["| rank | kind | wells | layers | score | chi2 | evidence | description |",
              "|---|---|---|---|---|---|---|---|"]
@@ -107,6 +152,7 @@ def markdown_report(doc: dict, level: int = 1) -> str:
              "back.", "", f"{h2} Verdict", "", doc["verdict"], "",
              "Selected extension: " + (f"**{sel['kind']}** ({sel['id']}) - {sel['description']}"
                                        if sel else "**none**"), "",
+             ] + _accepted(doc, h2) + _windows(doc, h2) + [
              f"{h2} Gain", "", gain_table(doc), "", f"{h2} Ranked causes", "",
              ranking_table(doc), ""] + _unexplained(doc, h2) + [
              f"{h2} Recalibrated candidates", "",

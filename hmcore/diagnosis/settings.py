@@ -72,6 +72,19 @@ class DiagnosisSettings:
     at this family-wise false-alarm rate makes the answer ``unexplained``, localised, instead
     of ``none``: its |z| must exceed the Bonferroni line ``norm.isf(alpha / (2 m))`` over the
     m bias and trend tests made (see :func:`hmcore.diagnosis.decision.localise`)."""
+    max_causes: int = 2
+    """Causes accepted at most, by greedy forward selection (1 or 2): when the first round
+    accepts a cause - or finds one that fits the fitted history beyond noise but that the
+    held-back history vetoes - a second round puts it in the model, calibrates, ranks and
+    recalibrates again (:mod:`hmcore.diagnosis.forward`). A vetoed first cause is accepted
+    only with a second one that makes the pair predict the held-back history."""
+    later_origins: tuple[float, ...] = (0.875,)
+    """When a diagnosis accepts nothing and its calibrated model misses the held-back history
+    beyond noise, it diagnoses again with the fitted window ending at the first of these
+    fractions of the record (first to last observed day) that lies beyond the current end
+    (:mod:`hmcore.diagnosis.origins`; empty: never)."""
+    later_min_heldout: int = 20
+    """... leaving at least this many observed points to hold back."""
     tie_band: float = 10.0
     """Recalibrated candidates whose fitted SSR is within this of the best fit the fitted
     history cannot tell apart: the held-back history orders them."""
@@ -147,10 +160,18 @@ class DiagnosisSettings:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "kinds", tuple(self.kinds))
+        object.__setattr__(self, "later_origins", tuple(self.later_origins))
         problems = kinds_problems(self.kinds, "kinds")
         if self.budget is not None and self.budget < 1:
             problems.append(Problem("budget", f"must be at least 1, got {self.budget}",
                                     "give a positive number of simulator calls, or none"))
+        if self.max_causes not in (1, 2):
+            problems.append(Problem("max_causes", f"must be 1 or 2, got {self.max_causes}",
+                                    "give 1 (one cause) or 2 (forward selection of a second)"))
+        bad = [f for f in self.later_origins if not 0.0 < f < 1.0]
+        if bad:
+            problems.append(Problem("later_origins", f"fractions of the record must lie in "
+                                    f"(0, 1), got {bad}", "give e.g. (0.875,), or () for none"))
         if self.workers < 1:
             problems.append(Problem("workers", f"must be at least 1, got {self.workers}",
                                     "give a positive number of simulations at once"))

@@ -21,6 +21,9 @@ artifacts; :func:`diagnose` runs them all):
    (:mod:`hmcore.diagnosis.decision`);
 7. ``report``     - ``diagnosis.json``, ``report.md`` and residual plots.
 
+One round of one fitted window; :mod:`hmcore.diagnosis.rounds` runs the rounds and windows
+(:func:`hmcore.diagnosis.rounds.diagnose`).
+
 The simulator is never run here: ``evaluate_batch(case, values_list, step) -> results`` is
 injected (results are :class:`hmcore.evaluation.Evaluation`-like: ``status``, ``E``,
 ``E_heldout``, ``responses``); :func:`local_evaluator` is a plain thread-pool one. Every call
@@ -238,7 +241,7 @@ class Diagnosis:
         return base_values(self.case.info, self.case.space)
 
     def calibrate(self, calibrated: dict[str, float] | None = None,
-                  initial: dict[str, float] | None = None) -> dict:
+                  initial: dict[str, float] | None = None, result: Any = None) -> dict:
         """Calibrate the case's parameters (or start from ``calibrated``, e.g. a campaign's
         best: phase 1 is skipped, phase 2 still polishes it unless ``polish_given`` is off).
 
@@ -249,7 +252,9 @@ class Diagnosis:
         finite-difference Jacobian, prewhitened residuals).
 
         With a budget, the ranking's calls are set aside first; a budget that cannot cover
-        :func:`minimum_runs` is refused (ValueError) before any simulation."""
+        :func:`minimum_runs` is refused (ValueError) before any simulation. ``result``: the
+        simulation of ``calibrated`` when it was already made (a second round starts from the
+        first's recalibrated model), so it is not run again."""
         t0 = time.perf_counter()
         space = self.case.space
         problem = budget_problem(self.case, self.settings, calibrated is not None, "budget")
@@ -263,11 +268,12 @@ class Diagnosis:
             if missing:
                 raise KeyError(f"calibrated values miss parameters {missing}")
             values = {n: float(calibrated[n]) for n in space.names}
-            run = self._run(self.case, [values], "calibration")[0]
+            run = (self._rescore(Run(values, result, None, None)) if result is not None
+                   else self._run(self.case, [values], "calibration")[0])
             if not run.ok:
                 raise RuntimeError(f"the calibrated model failed to simulate: "
                                    f"{getattr(run.result, 'reason', '')}")
-            phases.append({"phase": "given", "runs": 1})
+            phases.append({"phase": "given", "runs": 0 if result is not None else 1})
         else:
             start = {**self.default_start(), **(initial or {})}
             wls = obs0.without_time_correlation()
@@ -727,6 +733,9 @@ class Diagnosis:
             "calibrated": self.base.values,
             "causes": d.causes,
             "selected": selected,
+            "accepted": ([decision.accepted_cause(selected, self.confirmed[d.selected], 1)]
+                         if selected else []),
+            "fits_beyond_noise": list(d.fits),
             "verdict": d.verdict,
             "heldout_within_noise": d.heldout_quiet,
             "gain": d.gain,
@@ -742,12 +751,15 @@ class Diagnosis:
         return self.document
 
     # ------------------------------------------------------------------ 7 report
-    def report(self, out_dir: Path | None = None) -> dict:
-        """Write diagnosis.json, report.md and the residual plots into ``out_dir``."""
+    def report(self, out_dir: Path | None = None, doc: dict | None = None,
+               extended: Run | None = None) -> dict:
+        """Write diagnosis.json, report.md and the residual plots into ``out_dir``: this
+        round's document, or ``doc`` (two rounds combined) with ``extended`` the run plotted
+        against the calibrated model."""
         from hmcore.diagnosis.report import markdown_report, plot_wells
         from storage.jsonable import to_jsonable
 
-        doc = self.document or self.decide()
+        doc = doc or self.document or self.decide()
         files: dict[str, Any] = {}
         if out_dir is not None:
             out_dir = Path(out_dir)
@@ -755,7 +767,8 @@ class Diagnosis:
             plots = []
             if self.settings.plots:
                 shown = doc["per_well_response"]["extension"]
-                ext = self.confirmed_runs.get(shown) if shown else None
+                ext = extended if extended is not None else \
+                    (self.confirmed_runs.get(shown) if shown else None)
                 plots = plot_wells(self.obs, self.base.responses,
                                    ext.responses if ext is not None else None,
                                    _plot_wells(doc, self.case), out_dir, label=shown or "")
@@ -775,18 +788,3 @@ def _plot_wells(doc: dict, case: Case) -> list[str]:
                 return list(c["wells"])
             break
     return sorted(case.info.wells, key=natural_key)
-
-
-def diagnose(case: Case, evaluate_batch: EvaluateBatch, *, calibrated: dict | None = None,
-             initial: dict | None = None, settings: DiagnosisSettings | None = None,
-             out_dir: Path | None = None, log: Callable[[str], None] | None = None) -> dict:
-    """Run every step; return the diagnosis document (also written to ``out_dir``)."""
-    d = Diagnosis(case, evaluate_batch, settings, log)
-    d.calibrate(calibrated, initial)
-    d.analyse()
-    d.rank()
-    d.extend()
-    d.recalibrate()
-    doc = d.decide()
-    d.report(out_dir)
-    return doc

@@ -1,0 +1,127 @@
+"""A whole diagnosis: the rounds of one fitted window and, when it ends without an answer,
+a later window.
+
+1. Round 1 on the case's fitted window (:class:`hmcore.diagnosis.workflow.Diagnosis`: calibrate,
+   analyse, rank, extend, recalibrate, decide);
+2. round 2 with round 1's cause in the model, for a second cause
+   (:mod:`hmcore.diagnosis.forward`);
+3. when nothing was accepted and the calibrated model misses the held-back history beyond
+   noise, the same on a later fitted window (:mod:`hmcore.diagnosis.origins`).
+
+Every step calls ``on_step(name, diagnosis)`` as it ends (``calibration``, ``residuals``,
+``ranking``, ``extension``, ``recalibration``; round 2's prefixed ``2-``, the later window's
+``later-``), so that the Prefect flow stores each as an artifact. Every simulation of every
+round counts against the one budget. Nothing here simulates: ``evaluate_batch`` is injected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from hmcore.case import Case
+from hmcore.diagnosis import forward, origins
+from hmcore.diagnosis.settings import DiagnosisSettings
+from hmcore.diagnosis.workflow import Diagnosis, EvaluateBatch, Run, budget_problem
+
+OnStep = Callable[[str, Diagnosis], None]
+STEP_NAMES = ("calibration", "residuals", "ranking", "extension", "recalibration")
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """The diagnosis document, the :class:`Diagnosis` whose window gave the answer (its
+    noise model and calibrated run draw the plots) and the run of the final model (None:
+    that diagnosis's shown candidate)."""
+
+    document: dict
+    diagnosis: Diagnosis
+    final: Run | None
+
+    def report(self, out_dir: Path | None) -> dict:
+        return self.diagnosis.report(out_dir, self.document, self.final)
+
+
+def run_round(d: Diagnosis, calibrate: Callable[[], Any], on_step: OnStep,
+              prefix: str = "") -> dict:
+    """The steps of one round, ``on_step`` after each; returns the round's decision."""
+    calibrate()
+    on_step(f"{prefix}calibration", d)
+    for name, step in zip(STEP_NAMES[1:], (d.analyse, d.rank, d.extend, d.recalibrate)):
+        step()
+        on_step(f"{prefix}{name}", d)
+    return d.decide()
+
+
+def diagnose_window(case: Case, evaluate_batch: EvaluateBatch, settings: DiagnosisSettings,
+                    calibrated: dict | None, initial: dict | None, log: Callable[[str], None],
+                    on_step: OnStep, prefix: str = "") -> Outcome:
+    """Round 1 and, when it finds a cause, round 2 on ``case``'s fitted window."""
+    d = Diagnosis(case, evaluate_batch, settings, log)
+    doc = run_round(d, lambda: d.calibrate(calibrated, initial), on_step, prefix)
+    p = forward.plan(d, doc)
+    if isinstance(p, str):
+        doc["rounds"], doc["no_second_round"] = [], p
+        return Outcome(doc, d, None)
+    doc2 = run_round(p.diagnosis, lambda: forward.start_round(p, d), on_step, f"{prefix}2-")
+    doc, final = forward.combine(d, doc, p, doc2)
+    return Outcome(doc, d, final)
+
+
+def diagnose_all(case: Case, evaluate_batch: EvaluateBatch, *, calibrated: dict | None = None,
+                 initial: dict | None = None, settings: DiagnosisSettings | None = None,
+                 log: Callable[[str], None] | None = None,
+                 on_step: OnStep | None = None) -> Outcome:
+    """Every window and round (see the module docstring); the document's ``cost`` counts
+    the simulations of all of them."""
+    s = settings or DiagnosisSettings()
+    log = log or (lambda msg: None)
+    on_step = on_step or (lambda name, d: None)
+    started = time.perf_counter()
+    count = {"runs": 0, "sim_time_s": 0.0}
+
+    def counted(c, values_list, step):
+        results = evaluate_batch(c, values_list, step)
+        count["runs"] += len(values_list)
+        count["sim_time_s"] += sum(float(getattr(r, "sim_time_s", 0.0) or 0.0)
+                                   for r in results)
+        return results
+
+    out = diagnose_window(case, counted, s, calibrated, initial, log, on_step)
+    origin = origins.later_origin(out.diagnosis.case, out.document, s)
+    left = None if s.budget is None else s.budget - count["runs"]
+    if isinstance(origin, float) and left is not None and left < 1:
+        origin = "the budget is spent"
+    if isinstance(origin, float):
+        later = origins.later_case(out.diagnosis.case, origin)
+        s2 = dataclasses.replace(s, budget=left)
+        if budget_problem(later, s2, True, "budget") is not None:
+            origin = f"the budget left ({left} calls) cannot cover a later window"
+        else:
+            log(f"later origin: the history fitted to day {origin:g}")
+            out2 = diagnose_window(later, counted, s2, out.document["calibrated"], None,
+                                   lambda msg: log(f"later window: {msg}"), on_step, "later-")
+            doc, named = origins.combine(out.document, out2.document)
+            out = out2 if named else out
+            out = Outcome(doc, out.diagnosis, out.final)
+    if isinstance(origin, str):
+        out.document["windows"], out.document["named_on"] = [], None
+        out.document["no_later_window"] = origin
+    out.document["cost"] = {**out.document.get("cost", {}), "simulations": count["runs"],
+                            "sim_time_s": count["sim_time_s"],
+                            "wall_time_s": time.perf_counter() - started}
+    return out
+
+
+def diagnose(case: Case, evaluate_batch: EvaluateBatch, *, calibrated: dict | None = None,
+             initial: dict | None = None, settings: DiagnosisSettings | None = None,
+             out_dir: Path | None = None, log: Callable[[str], None] | None = None) -> dict:
+    """Run every step of every round and window; return the diagnosis document (also
+    written to ``out_dir``)."""
+    out = diagnose_all(case, evaluate_batch, calibrated=calibrated, initial=initial,
+                       settings=settings, log=log)
+    out.report(out_dir)
+    return out.document
