@@ -850,7 +850,10 @@ def _diagnosis_budget(case, budget: Optional[int], kinds: Optional[tuple[str, ..
 def hide(out: Path = typer.Option(..., "--out", help="New directory for the case (must not "
                                   "exist or be empty)"),
          kind: Optional[str] = typer.Option(None, "--kind", help="Kind of the hidden effect, "
-                                            "drawn by --seed (omit: a control, nothing hidden)"),
+                                            "drawn by --seed: a library kind, or a generator "
+                                            "of effects beyond the library (partial_fault, "
+                                            "offcentre_region, relperm_endpoint, two_kinds, "
+                                            "contact); omit: a control, nothing hidden"),
          seed: int = typer.Option(0, "--seed", help="Draws the effect, its strength and the "
                                   "noise (and, for the synthetic case, the fields)"),
          candidate: Optional[str] = typer.Option(None, "--candidate", help="Hide this library "
@@ -876,16 +879,22 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
     reveal` to see whether it found it. The effect is recorded in OUT/hidden_effect.json."""
     from hmcore.deck_info import DeckInfo
     from hmcore.diagnosis.extensions import KINDS, base_values
-    from hmcore.diagnosis.hidden import (chosen_effect, draw_effect, synthetic_deck_info,
-                                         write_hidden_deck_case, write_hidden_synthetic_case)
+    from hmcore.diagnosis.generators import GENERATORS
+    from hmcore.diagnosis.hidden import (chosen_effect, draw_effect, draw_effects,
+                                         synthetic_deck_info, write_hidden_deck_case,
+                                         write_hidden_synthetic_case)
     from hmcore.parameters import ParameterSpace
 
     problems = []
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         problems.append(f"--out {out}: exists and is not an empty directory; nothing is "
                         "overwritten, choose a new one")
-    if kind is not None and kind not in KINDS:
-        problems.append(f"--kind {kind!r}: unknown; one of {list(KINDS)}")
+    if kind is not None and kind not in KINDS + GENERATORS:
+        problems.append(f"--kind {kind!r}: unknown; one of {list(KINDS)} or a generator "
+                        f"{list(GENERATORS)}")
+    if kind in GENERATORS and candidate is not None:
+        problems.append(f"--candidate names a library candidate; --kind {kind} generates "
+                        "effects beyond the library: give one of them, not both")
     if candidate is not None and kind is not None and not candidate.startswith(kind + ":"):
         problems.append(f"--candidate {candidate!r} is not of --kind {kind!r}")
     if value is not None and candidate is None:
@@ -914,18 +923,22 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
         k = kind or (candidate.split(":", 1)[0] if candidate else None)
         if candidate is not None and value is not None:
             effect = chosen_effect(candidate, value, info, space, truth)
+        elif k in GENERATORS:
+            draw_effects(k, seed, info, space, truth)  # an impossible one refused here
         elif k is not None:
             effect = draw_effect(k, seed, info, space, truth,
                                  choices=[candidate] if candidate else None)
+        generated = k if k in GENERATORS else None
         if deck is None:
-            case_toml, effect = write_hidden_synthetic_case(out, seed, effect=effect,
-                                                            history_end_days=history_end)
+            case_toml, effect = write_hidden_synthetic_case(
+                out, seed, kind=generated, effect=effect, history_end_days=history_end)
             text = case_toml.read_text().replace('name = "synthetic"', f'name = "{out.name}"', 1)
             case_toml.write_text(text)
         else:
             case_toml, effect = write_hidden_deck_case(
-                out, deck, seed, truth=truth, effect=effect, history_end_days=history_end,
-                with_sigma=sigma, name=out.name, end_days=record_end)
+                out, deck, seed, truth=truth, kind=generated, effect=effect,
+                history_end_days=history_end, with_sigma=sigma, name=out.name,
+                end_days=record_end)
     except ValueError as exc:
         if created:  # leave nothing half-written behind
             import shutil
@@ -934,7 +947,11 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
         err_console.print(f"[red]x[/] {exc}")
         raise typer.Exit(2)
     hidden_json = out / "hidden_effect.json"
-    what = "nothing (a control)" if effect is None else f"one {effect.kind} effect"
+    n = len(json.loads(hidden_json.read_text()).get("effects") or [])
+    what = ("nothing (a control)" if effect is None else f"one {effect.kind} effect" if n == 1
+            else f"{n} effects")
+    if kind in GENERATORS:
+        what += f", generated by {kind} (beyond the library's own geometry)"
     signal = json.loads(hidden_json.read_text()).get("signal")
     for line in (f"[green]Case written[/]: {case_toml}",
                  f"  hidden: {what}; the details are in {hidden_json} (look after diagnosing)",
@@ -952,15 +969,33 @@ def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json
                                           "`hmflow diagnose`")) -> None:
     """Compare a diagnosis with the effect hidden in its case: right kind and well / layer
     ranked first, selected, held-back misfit improved. Exit 1 when it was not found."""
-    from hmcore.diagnosis.hidden import judge, load_hidden_effect
+    from hmcore.diagnosis.hidden import judge, judge_effects, load_hidden_effects
 
     for label, path in (("--hidden", hidden), ("--diagnosis", diagnosis)):
         if not path.is_file():
             err_console.print(f"[red]x[/] {label} {path}: no such file")
             raise typer.Exit(2)
-    effect = load_hidden_effect(hidden)
+    effects = load_hidden_effects(hidden)
     doc = json.loads(diagnosis.read_text())
     signal = json.loads(hidden.read_text()).get("signal")
+    if len(effects) > 1 or (effects and effects[0].generated):
+        j = judge_effects(doc, effects, signal)
+        for e in effects:
+            console.print(f"hidden: [bold]{e.candidate.id}[/] = {e.value:.4g} "
+                          f"({e.candidate.description}); a right answer: {e.kind}"
+                          + (f" at {', '.join(e.candidate.details['expect_wells'])}"
+                             if e.candidate.details.get("expect_wells") else "")
+                          + f" - {'[green]named[/]' if j['named'][e.candidate.id] else '[red]not named[/]'}")
+        console.print(f"accepted: {', '.join(j['accepted']) or 'none'}; first cause: "
+                      f"{doc['causes'][0]['id']}")
+        g = doc["gain"]
+        console.print(f"held-back E {_num(g['heldout_before'], 5)} -> "
+                      f"{_num(g['heldout_after'], 5)}")
+        console.print("[bold green]FOUND[/]" if j["found"] else "[bold red]NOT FOUND[/]")
+        if not j["found"]:
+            raise typer.Exit(1)
+        return
+    effect = effects[0] if effects else None
     j = judge(doc, effect, signal)
     if effect is None:
         console.print("hidden: nothing (a control)")

@@ -73,7 +73,16 @@ class HiddenEffect:
         return {"id": self.candidate.id, "kind": self.kind, "wells": list(self.candidate.wells),
                 "layers": list(self.candidate.layers), "value": self.value,
                 "parameter": self.parameter.model_dump(mode="json"),
-                "description": self.candidate.description}
+                "description": self.candidate.description,
+                "generated": self.candidate.details.get("generated"),
+                "expect_wells": self.candidate.details.get("expect_wells"),
+                "expect_ids": self.candidate.details.get("expect_ids")}
+
+    @property
+    def generated(self) -> str | None:
+        """The generator that made it (:mod:`hmcore.diagnosis.generators`), None for a
+        library candidate."""
+        return self.candidate.details.get("generated")
 
 
 def chosen_effect(candidate_id: str, value: float, info: DeckInfo, space: ParameterSpace,
@@ -97,17 +106,46 @@ def chosen_effect(candidate_id: str, value: float, info: DeckInfo, space: Parame
     return HiddenEffect(c, float(value))
 
 
-def load_hidden_effect(path: Path) -> HiddenEffect | None:
-    """The effect a ``hidden_effect.json`` (written by the ``write_hidden_*`` functions)
-    describes; None for a control."""
-    doc = json.loads(Path(path).read_text())
-    e = doc.get("effect") if isinstance(doc, dict) and "truth" in doc else doc
-    if e is None:
-        return None
+def _effect_of(e: dict) -> HiddenEffect:
+    details = {"generated": e["generated"], "expect_wells": e.get("expect_wells") or [],
+               "expect_ids": e.get("expect_ids") or []} if e.get("generated") else {}
     c = Candidate(id=e["id"], kind=e["kind"], parameter=Parameter.model_validate(e["parameter"]),
                   wells=tuple(e.get("wells", ())), layers=tuple(e.get("layers", ())),
-                  description=e.get("description", ""))
+                  description=e.get("description", ""), details=details)
     return HiddenEffect(c, float(e["value"]))
+
+
+def load_hidden_effects(path: Path) -> list[HiddenEffect]:
+    """Every effect a ``hidden_effect.json`` (written by the ``write_hidden_*`` functions)
+    describes; empty for a control."""
+    doc = json.loads(Path(path).read_text())
+    if isinstance(doc, dict) and "effects" in doc:
+        return [_effect_of(e) for e in doc["effects"]]
+    e = doc.get("effect") if isinstance(doc, dict) and "truth" in doc else doc
+    return [] if e is None else [_effect_of(e)]
+
+
+def load_hidden_effect(path: Path) -> HiddenEffect | None:
+    """The (first) effect a ``hidden_effect.json`` describes; None for a control."""
+    effects = load_hidden_effects(path)
+    return effects[0] if effects else None
+
+
+def draw_effects(kind: str, seed: int, info: DeckInfo, space: ParameterSpace,
+                 values: dict[str, float]) -> list[HiddenEffect]:
+    """The effects of ``kind``: a library kind (one candidate, :func:`draw_effect`) or a
+    generator of :mod:`hmcore.diagnosis.generators`."""
+    from hmcore.diagnosis.generators import GENERATORS, generate
+
+    if kind in GENERATORS:
+        return generate(kind, seed, info, space, values)
+    return [draw_effect(kind, seed, info, space, values)]
+
+
+def _effects_json(effects: list[HiddenEffect], truth: dict, signal: dict | None) -> str:
+    return json.dumps({"effect": effects[0].to_dict() if effects else None,
+                       "effects": [e.to_dict() for e in effects], "truth": truth,
+                       "signal": signal}, indent=2) + "\n"
 
 
 def draw_effect(kind: str, seed: int, info: DeckInfo, space: ParameterSpace,
@@ -152,27 +190,28 @@ def write_hidden_synthetic_case(dest: Path, seed: int, kind: str | None = None,
                                 effect: HiddenEffect | None = None,
                                 history_end_days: float | None = None
                                 ) -> tuple[Path, HiddenEffect | None]:
-    """The synthetic case of ``seed`` whose truth hides ``effect`` (or one drawn of ``kind``;
-    neither: the control, nothing hidden). Returns (case.toml, effect); the effect is also
-    written to ``dest/hidden_effect.json``."""
+    """The synthetic case of ``seed`` whose truth hides ``effect`` (or those drawn of ``kind``:
+    a library kind or a generator; neither: the control, nothing hidden). Returns (case.toml,
+    the first effect); every effect is written to ``dest/hidden_effect.json``."""
     from hmcore.synthetic import SYNTHETIC_TRUTH, write_synthetic_case
 
     space = ParameterSpace.reference()
+    effects = [effect] if effect is not None else []
     if effect is None and kind is not None:
         info = synthetic_deck_info(seed, Path(dest) / "base-deck")
-        effect = draw_effect(kind, seed, info, space, SYNTHETIC_TRUTH)
-    if effect is None:
+        effects = draw_effects(kind, seed, info, space, SYNTHETIC_TRUTH)
+    hidden = {e.parameter.name: e.value for e in effects}
+    if not effects:
         case = write_synthetic_case(dest, seed, history_end_days=history_end_days)
     else:
-        truth_space = ParameterSpace(parameters=space.parameters + (effect.parameter,))
-        case = write_synthetic_case(dest, seed, truth={effect.parameter.name: effect.value},
-                                    truth_space=truth_space, history_end_days=history_end_days)
-    truth = {**SYNTHETIC_TRUTH, **({effect.parameter.name: effect.value} if effect else {})}
-    signal = effect_signal(case, SYNTHETIC_TRUTH) if effect else None
-    (Path(dest) / "hidden_effect.json").write_text(
-        json.dumps({"effect": effect.to_dict() if effect else None, "truth": truth,
-                    "signal": signal}, indent=2) + "\n")
-    return case, effect
+        truth_space = ParameterSpace(parameters=space.parameters
+                                     + tuple(e.parameter for e in effects))
+        case = write_synthetic_case(dest, seed, truth=hidden, truth_space=truth_space,
+                                    history_end_days=history_end_days)
+    truth = {**SYNTHETIC_TRUTH, **hidden}
+    signal = effect_signal(case, SYNTHETIC_TRUTH) if effects else None
+    (Path(dest) / "hidden_effect.json").write_text(_effects_json(effects, truth, signal))
+    return case, (effects[0] if effects else None)
 
 
 # ----------------------------------------------------------------------------- any deck
@@ -226,11 +265,12 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
     if history_end_days is None:
         history_end_days = round(0.75 * (info.end_days if end_days is None else end_days))
     space = space or ParameterSpace.reference()
+    effects = [effect] if effect is not None else []
     if effect is None and kind is not None:
-        effect = draw_effect(kind, seed, info, space, truth)
-    truth_space = ParameterSpace(parameters=space.parameters + ((effect.parameter,) if effect
-                                                                 else ()))
-    values = {**truth, **({effect.parameter.name: effect.value} if effect else {})}
+        effects = draw_effects(kind, seed, info, space, truth)
+    truth_space = ParameterSpace(parameters=space.parameters
+                                 + tuple(e.parameter for e in effects))
+    values = {**truth, **{e.parameter.name: e.value for e in effects}}
     sim = simulator or OpmFlow()
     run_dir = dest / "truth-run"
     run_deck = prepare_run_deck(deck, values, truth_space, run_dir, info)
@@ -246,11 +286,9 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
     case = dest / "case.toml"
     case.write_text(f'[case]\nname = "{name}"\ndeck = "{deck}"\nobserved = "observed.csv"\n'
                     f"history_end_days = {history_end_days:g}\n")
-    signal = effect_signal(case, truth, sim) if effect else None
-    (dest / "hidden_effect.json").write_text(
-        json.dumps({"effect": effect.to_dict() if effect else None, "truth": values,
-                    "signal": signal}, indent=2) + "\n")
-    return case, effect
+    signal = effect_signal(case, truth, sim) if effects else None
+    (dest / "hidden_effect.json").write_text(_effects_json(effects, values, signal))
+    return case, (effects[0] if effects else None)
 
 
 SIGNAL_VISIBLE = DiagnosisSettings().chi2_threshold
@@ -355,6 +393,56 @@ def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=No
 
 
 # ----------------------------------------------------------------------------- scoring a finding
+def names(cause: dict, effect: HiddenEffect) -> bool:
+    """Does ``cause`` (a ranked or accepted cause of a diagnosis) name ``effect``? Its kind,
+    and where the kind names one, the same well (well skin, regional permeability), layer
+    (layer and vertical permeability) or candidate (fault plane, aquifer item, relperm
+    table). A generated effect (:mod:`hmcore.diagnosis.generators`), which no candidate
+    matches exactly: its family, naming the wells it expects (``expect_wells``)."""
+    h = effect.candidate
+    if cause["kind"] != h.kind:
+        return False
+    if effect.generated:
+        ids = h.details.get("expect_ids")
+        return set(h.details.get("expect_wells") or []) <= set(cause["wells"]) and \
+            (not ids or cause["id"] in ids)
+    if h.kind in ("well_skin", "regional_permeability"):
+        return cause["wells"] == list(h.wells)
+    if h.kind in ("layer_permeability", "vertical_permeability"):
+        return cause["layers"] == list(h.layers)
+    return cause["id"] == h.id
+
+
+def judge_effects(doc: dict, effects: list[HiddenEffect], signal: dict | None = None) -> dict:
+    """Did the diagnosis ``doc`` find every hidden effect? One library effect (or none): as
+    :func:`judge`. Otherwise each effect must be named (:func:`names`) by an accepted cause -
+    an effect of no family (kind ``unexplained``) by the first cause - and, unless all are of
+    no family, the held-back misfit must drop as in :func:`judge`. Returns ``found``,
+    ``named`` (effect id -> bool), ``heldout_improved``, the ranking and the verdict."""
+    if len(effects) <= 1 and not (effects and effects[0].generated):
+        return judge(doc, effects[0] if effects else None, signal)
+    accepted = doc.get("accepted") or ([doc["selected"]] if doc.get("selected") else [])
+    first = doc["causes"][0]
+    named = {e.candidate.id: (first["kind"] == "unexplained" if e.kind == "unexplained"
+                              else any(names(a, e) for a in accepted)) for e in effects}
+    g = doc["gain"]
+    held = g["heldout_after"] is not None and g["heldout_before"] is not None and \
+        g["heldout_after"] < g["heldout_before"]
+    truth_e = (signal or {}).get("truth_E_heldout")
+    if not held and truth_e is not None and g["heldout_before"] is not None and \
+            truth_e >= g["heldout_before"]:
+        held = g.get("ssr_heldout_after") is not None and \
+            g["ssr_heldout_after"] < g["ssr_heldout_before"]
+    need_held = any(e.kind != "unexplained" for e in effects)
+    top = [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:4] if c["chi2"] is not None]
+    return {"hidden": [e.candidate.id for e in effects], "named": named,
+            "accepted": [a["id"] for a in accepted], "heldout_improved": bool(held),
+            "found": bool(all(named.values()) and (held or not need_held)),
+            "ranking": top, "verdict": doc["verdict"],
+            "gain": {k: g[k] for k in ("fit_before", "fit_after", "heldout_before",
+                                       "heldout_after")}}
+
+
 def judge(doc: dict, effect: HiddenEffect | None, signal: dict | None = None) -> dict:
     """Did the diagnosis ``doc`` find the hidden ``effect`` (None: the control)?
 
@@ -376,13 +464,7 @@ def judge(doc: dict, effect: HiddenEffect | None, signal: dict | None = None) ->
         return {"hidden": None, "ranked_first": ok, "selected": ok, "heldout_improved": ok,
                 "found": ok, "ranking": top, "verdict": doc["verdict"]}
     h = effect.candidate
-    same = first["kind"] == h.kind
-    if h.kind in ("well_skin", "regional_permeability"):
-        same = same and first["wells"] == list(h.wells)
-    elif h.kind in ("layer_permeability", "vertical_permeability"):
-        same = same and first["layers"] == list(h.layers)
-    else:
-        same = same and first["id"] == h.id
+    same = names(first, effect)
     sel = doc["selected"] is not None and doc["selected"]["id"] == h.id
     held_e = (g["heldout_after"] is not None and g["heldout_before"] is not None
               and g["heldout_after"] < g["heldout_before"])

@@ -1,0 +1,159 @@
+"""Hidden effects the candidate library does not hold as they are: other geometry, another
+mechanism of a known family, two effects at once, or no family at all (issue 18).
+
+The library searches a skin on one well, a box of +-3 cells centred on a well, a whole layer,
+a full fault plane midway between well columns, a power law on krw / krg, an aquifer's
+strength. A diagnosis that only finds effects drawn from that list proves little, so these
+generators draw, from a seed:
+
+==================== ===================================================== ==================
+generator            the truth hides                                        a right answer
+==================== ===================================================== ==================
+``partial_fault``    MULTX/MULTY on part of a plane (40-60 % of its        the fault family
+                     length), off the midline planes the library searches
+``offcentre_region`` a permeability box of 7x7 columns centred 3-4 cells   the regional family
+                     off a well (diagonally)                                 at that well
+``relperm_endpoint`` the water curve's critical saturation moved by        the relative-
+                     +-0.05-0.10 (end-point scaling, not a shape change)    permeability family
+``two_kinds``        two library effects of different kinds at once        both, each by kind
+``contact``          the initial water-oil contact moved (EQUIL item 3,    ``unexplained``
+                     +-0.3-0.8 % of its depth): no family makes that        (or none, when
+                                                                            invisible)
+==================== ===================================================== ==================
+
+Each effect is a :class:`hmcore.diagnosis.hidden.HiddenEffect` whose candidate's ``kind`` is the
+family a right answer names (``unexplained`` for no family) and whose ``details`` say which
+generator made it and what a right answer must also name (``expect_wells``; ``expect_ids``:
+the candidates that count, where the family has several that would not). Strengths are
+drawn a few times above the noise, as the library's (:data:`hidden.STRENGTH`). Pure: nothing
+here simulates; :func:`hmcore.diagnosis.hidden.write_hidden_synthetic_case` and
+``write_hidden_deck_case`` run the truth.
+
+Not generated yet: an effect that starts at a report date (a skin or productivity change from
+a date needs a schedule edit the deck writer does not make).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hmcore.deck_info import DeckInfo
+from hmcore.diagnosis.extensions import (FAULT_BOUNDS, KINDS, PERM_BOUNDS, Candidate,
+                                         build_candidates, well_column)
+from hmcore.parameters import Parameter, ParameterSpace
+from hmcore.results import natural_key
+
+GENERATORS = ("partial_fault", "offcentre_region", "relperm_endpoint", "two_kinds", "contact")
+TWO_KINDS_FROM = ("well_skin", "regional_permeability", "layer_permeability",
+                  "aquifer_strength", "fault_transmissibility")
+"""The kinds ``two_kinds`` draws its pair from (those every test deck offers)."""
+
+
+def generate(name: str, seed: int, info: DeckInfo, space: ParameterSpace,
+             values: dict[str, float]) -> list:
+    """The hidden effects of generator ``name`` for ``seed`` on the deck ``info`` (the
+    calibration ``space`` at ``values``). ValueError for an unknown name or a deck that cannot
+    carry it."""
+    from hmcore.diagnosis.hidden import HiddenEffect, draw_effect
+
+    if name not in GENERATORS:
+        raise ValueError(f"unknown generator {name!r}; the generators are {list(GENERATORS)} "
+                         f"(and the library kinds {list(KINDS)})")
+    rng = np.random.default_rng([seed, 101, GENERATORS.index(name)])
+    if name == "two_kinds":
+        a, b = rng.choice(len(TWO_KINDS_FROM), size=2, replace=False)
+        kinds = [TWO_KINDS_FROM[int(a)], TWO_KINDS_FROM[int(b)]]
+        out = []
+        for k in kinds:
+            try:
+                out.append(draw_effect(k, seed, info, space, values))
+            except ValueError:  # the deck has none of that kind (no aquifer, say)
+                continue
+        if len(out) < 2:
+            raise ValueError(f"the deck {info.path} cannot carry two of {kinds}")
+        return out
+    c, value = {"partial_fault": _partial_fault, "offcentre_region": _offcentre_region,
+                "relperm_endpoint": _relperm_endpoint, "contact": _contact}[name](rng, info, space)
+    return [HiddenEffect(c, value)]
+
+
+def _log_uniform(rng, lo: float, hi: float) -> float:
+    return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+
+
+def _partial_fault(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
+    nx, ny, nz = info.dims
+    library = {tuple(c.parameter.box) for c in build_candidates(
+        info, space, {}, ("fault_transmissibility",))}
+    axis = "i" if rng.random() < 0.5 else "j"
+    n_across, n_along = (nx, ny) if axis == "i" else (ny, nx)
+    midlines = {b[0] if axis == "i" else b[2] for b in library}
+    planes = [p for p in range(2, n_across - 1) if p not in midlines]
+    p0 = int(planes[int(rng.integers(len(planes)))])
+    length = max(2, int(round(rng.uniform(0.4, 0.6) * n_along)))
+    start = int(rng.integers(1, n_along - length + 2))
+    span = (start, start + length - 1)
+    box = (p0, p0, *span, 1, nz) if axis == "i" else (*span, p0, p0, 1, nz)
+    keyword = "MULTX" if axis == "i" else "MULTY"
+    p = Parameter(name=f"hidden_fault_{axis}{p0}", kind="multiply", keywords=(keyword,),
+                  box=box, low=FAULT_BOUNDS[0], high=FAULT_BOUNDS[1],
+                  description=f"{keyword} on part of the plane {axis} = {p0} | {p0 + 1}")
+    other = "j" if axis == "i" else "i"
+    c = Candidate(f"partial_fault:{axis}{p0}:{other}{span[0]}-{span[1]}",
+                  "fault_transmissibility", p, (), (),
+                  f"a sealing fault on the plane {axis} = {p0} | {p0 + 1}, over {other} = "
+                  f"{span[0]}-{span[1]} only (off the library's midline planes)",
+                  details={"generated": "partial_fault", "expect_wells": []})
+    return c, _log_uniform(rng, 1e-3, 1e-2)
+
+
+def _offcentre_region(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
+    nx, ny, nz = info.dims
+    wells = sorted(info.producers, key=natural_key)
+    well = wells[int(rng.integers(len(wells)))]
+    i, j = well_column(info, well)
+    di, dj = (int(rng.integers(3, 5)) * (1 if rng.random() < 0.5 else -1) for _ in range(2))
+    ci, cj = int(np.clip(i + di, 4, nx - 3)), int(np.clip(j + dj, 4, ny - 3))
+    box = (ci - 3, ci + 3, cj - 3, cj + 3, 1, nz)
+    lo, hi = (0.15, 0.35) if rng.random() < 0.6 else (3.0, 6.0)
+    p = Parameter(name=f"hidden_region_{ci}_{cj}", kind="multiply", keywords=("PERMX", "PERMY"),
+                  box=box, low=PERM_BOUNDS[0], high=PERM_BOUNDS[1],
+                  description=f"PERMX and PERMY multiplier of cells i {box[0]}-{box[1]}, "
+                              f"j {box[2]}-{box[3]}")
+    c = Candidate(f"offcentre_region:{well}:i{box[0]}-{box[1]}:j{box[2]}-{box[3]}",
+                  "regional_permeability", p, (well,), (),
+                  f"the rock of cells i {box[0]}-{box[1]}, j {box[2]}-{box[3]} is more or less "
+                  f"permeable: a box beside {well}, not centred on it",
+                  details={"generated": "offcentre_region", "expect_wells": [well]})
+    return c, _log_uniform(rng, lo, hi)
+
+
+def _relperm_endpoint(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
+    table = next((t for t in ("SWOF", "SWFN") if t in info.keyword_names), None)
+    if table is None:
+        raise ValueError(f"the deck {info.path} has no SWOF or SWFN table to shift")
+    shift = float(rng.uniform(0.05, 0.10)) * (1 if rng.random() < 0.5 else -1)
+    p = Parameter(name="hidden_swcr_shift", kind="relperm", keywords=(table,), item=2,
+                  mode="endpoint", low=-0.2, high=0.2,
+                  description=f"critical water saturation of {table} moved")
+    c = Candidate(f"relperm_endpoint:water:{shift:+.3f}", "relative_permeability", p, (), (),
+                  f"the water relative permeability starts at another saturation (SWCR "
+                  f"{shift:+.3f}): an end point, not the curve's shape",
+                  details={"generated": "relperm_endpoint", "expect_wells": [],
+                           "expect_ids": ["relative_permeability:water"]})
+    return c, shift
+
+
+def _contact(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
+    if "EQUIL" not in info.keyword_names:
+        raise ValueError(f"the deck {info.path} has no EQUIL keyword (the contact to move)")
+    factor = 1.0 + float(rng.uniform(0.003, 0.008)) * (1 if rng.random() < 0.5 else -1)
+    p = Parameter(name="hidden_woc_depth", kind="item_multiply", keywords=("EQUIL",), item=3,
+                  low=0.95, high=1.05, description="water-oil contact depth (EQUIL item 3)")
+    c = Candidate(f"contact:woc:x{factor:.4f}", "unexplained", p, (), (),
+                  f"the initial water-oil contact is {'deeper' if factor > 1 else 'shallower'} "
+                  f"than the model says (depth x{factor:.4f}): no family of the library",
+                  details={"generated": "contact", "expect_wells": []})
+    return c, factor
