@@ -46,6 +46,9 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     assert span < axis_len  # part of the plane only
     planes = {b[0] for b in boxes if b[0] == b[1]} | {-b[2] for b in boxes if b[2] == b[3]}
     assert (box[0] if box[0] == box[1] else -box[2]) not in planes  # off the midlines
+    pos = [c[0] for c in columns] if box[0] == box[1] else [c[1] for c in columns]
+    plane = box[0] if box[0] == box[1] else box[2]
+    assert min(pos) <= plane < max(pos)  # between producers
     assert fault.parameter.low <= fault.value <= 0.01
 
     (region,) = generate("offcentre_region", seed, info, space, truth)
@@ -53,6 +56,8 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     centre = ((b[0] + b[1]) // 2, (b[2] + b[3]) // 2)
     assert region.kind == "regional_permeability" and b not in boxes
     assert centre not in columns  # beside a well, not centred on one
+    wi, wj = well_column(info, region.candidate.wells[0])
+    assert min(abs(centre[0] - wi), abs(centre[1] - wj)) >= 3  # off in both i and j
     assert region.candidate.details["expect_wells"] == list(region.candidate.wells)
 
     (endpoint,) = generate("relperm_endpoint", seed, info, space, truth)

@@ -10,9 +10,9 @@ generators draw, from a seed:
 generator            the truth hides                                        a right answer
 ==================== ===================================================== ==================
 ``partial_fault``    MULTX/MULTY on part of a plane (40-60 % of its        the fault family
-                     length), off the midline planes the library searches
+                     length) between producers, off the library's midlines
 ``offcentre_region`` a permeability box of 7x7 columns centred 3-4 cells   the regional family
-                     off a well (diagonally)                                 at that well
+                     off a well in both i and j                              at that well
 ``relperm_endpoint`` the water curve's critical saturation moved by        the relative-
                      +-0.05-0.10 (end-point scaling, not a shape change)    permeability family
 ``two_kinds``        two library effects of different kinds at once        both, each by kind
@@ -63,17 +63,11 @@ def generate(name: str, seed: int, info: DeckInfo, space: ParameterSpace,
                          f"(and the library kinds {list(KINDS)})")
     rng = np.random.default_rng([seed, 101, GENERATORS.index(name)])
     if name == "two_kinds":
-        a, b = rng.choice(len(TWO_KINDS_FROM), size=2, replace=False)
-        kinds = [TWO_KINDS_FROM[int(a)], TWO_KINDS_FROM[int(b)]]
-        out = []
-        for k in kinds:
-            try:
-                out.append(draw_effect(k, seed, info, space, values))
-            except ValueError:  # the deck has none of that kind (no aquifer, say)
-                continue
-        if len(out) < 2:
-            raise ValueError(f"the deck {info.path} cannot carry two of {kinds}")
-        return out
+        offered = [k for k in TWO_KINDS_FROM if build_candidates(info, space, values, (k,))]
+        if len(offered) < 2:
+            raise ValueError(f"the deck {info.path} offers fewer than two of {TWO_KINDS_FROM}")
+        a, b = rng.choice(len(offered), size=2, replace=False)
+        return [draw_effect(offered[int(k)], seed, info, space, values) for k in (a, b)]
     c, value = {"partial_fault": _partial_fault, "offcentre_region": _offcentre_region,
                 "relperm_endpoint": _relperm_endpoint, "contact": _contact}[name](rng, info, space)
     return [HiddenEffect(c, value)]
@@ -85,18 +79,25 @@ def _log_uniform(rng, lo: float, hi: float) -> float:
 
 def _partial_fault(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
     nx, ny, nz = info.dims
-    library = {tuple(c.parameter.box) for c in build_candidates(
-        info, space, {}, ("fault_transmissibility",))}
-    axis = "i" if rng.random() < 0.5 else "j"
-    n_across, n_along = (nx, ny) if axis == "i" else (ny, nx)
-    midlines = {b[0] if axis == "i" else b[2] for b in library}
-    planes = [p for p in range(2, n_across - 1) if p not in midlines]
-    p0 = int(planes[int(rng.integers(len(planes)))])
+    cols = [well_column(info, w) for w in info.producers]
+    choices = []
+    for axis, keyword in (("i", "MULTX"), ("j", "MULTY")):
+        library = {c.parameter.box[0] if axis == "i" else c.parameter.box[2]
+                   for c in build_candidates(info, space, {}, ("fault_transmissibility",))
+                   if c.parameter.keywords == (keyword,)}
+        pos = [c[0] if axis == "i" else c[1] for c in cols]
+        # planes with producers on both sides (a barrier between wells), off the midlines
+        choices += [(axis, keyword, p) for p in range(min(pos), max(pos))
+                    if p not in library]
+    if not choices:
+        raise ValueError(f"the deck {info.path} has no plane between producers off the "
+                         "library's midlines for a partial fault")
+    axis, keyword, p0 = choices[int(rng.integers(len(choices)))]
+    n_along = ny if axis == "i" else nx
     length = max(2, int(round(rng.uniform(0.4, 0.6) * n_along)))
     start = int(rng.integers(1, n_along - length + 2))
     span = (start, start + length - 1)
     box = (p0, p0, *span, 1, nz) if axis == "i" else (*span, p0, p0, 1, nz)
-    keyword = "MULTX" if axis == "i" else "MULTY"
     p = Parameter(name=f"hidden_fault_{axis}{p0}", kind="multiply", keywords=(keyword,),
                   box=box, low=FAULT_BOUNDS[0], high=FAULT_BOUNDS[1],
                   description=f"{keyword} on part of the plane {axis} = {p0} | {p0 + 1}")
@@ -114,8 +115,16 @@ def _offcentre_region(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candi
     wells = sorted(info.producers, key=natural_key)
     well = wells[int(rng.integers(len(wells)))]
     i, j = well_column(info, well)
-    di, dj = (int(rng.integers(3, 5)) * (1 if rng.random() < 0.5 else -1) for _ in range(2))
-    ci, cj = int(np.clip(i + di, 4, nx - 3)), int(np.clip(j + dj, 4, ny - 3))
+
+    def shifted(x: int, n: int) -> int:
+        """x moved 3-4 cells, towards the side with room for the 7-cell box."""
+        d = int(rng.integers(3, 5))
+        up, down = x + d, x - d
+        if up <= n - 3 and (down < 4 or rng.random() < 0.5):
+            return up
+        return down if down >= 4 else int(np.clip(up, 4, n - 3))
+
+    ci, cj = shifted(i, nx), shifted(j, ny)
     box = (ci - 3, ci + 3, cj - 3, cj + 3, 1, nz)
     lo, hi = (0.15, 0.35) if rng.random() < 0.6 else (3.0, 6.0)
     p = Parameter(name=f"hidden_region_{ci}_{cj}", kind="multiply", keywords=("PERMX", "PERMY"),

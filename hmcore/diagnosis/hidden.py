@@ -75,8 +75,8 @@ class HiddenEffect:
                 "parameter": self.parameter.model_dump(mode="json"),
                 "description": self.candidate.description,
                 "generated": self.candidate.details.get("generated"),
-                "expect_wells": self.candidate.details.get("expect_wells"),
-                "expect_ids": self.candidate.details.get("expect_ids")}
+                "expect_wells": self.candidate.details.get("expect_wells") or [],
+                "expect_ids": self.candidate.details.get("expect_ids") or []}
 
     @property
     def generated(self) -> str | None:
@@ -142,8 +142,9 @@ def draw_effects(kind: str, seed: int, info: DeckInfo, space: ParameterSpace,
     return [draw_effect(kind, seed, info, space, values)]
 
 
-def _effects_json(effects: list[HiddenEffect], truth: dict, signal: dict | None) -> str:
-    return json.dumps({"effect": effects[0].to_dict() if effects else None,
+def _effects_json(effects: list[HiddenEffect], truth: dict, signal: dict | None,
+                  kind: str | None = None) -> str:
+    return json.dumps({"kind": kind, "effect": effects[0].to_dict() if effects else None,
                        "effects": [e.to_dict() for e in effects], "truth": truth,
                        "signal": signal}, indent=2) + "\n"
 
@@ -210,7 +211,7 @@ def write_hidden_synthetic_case(dest: Path, seed: int, kind: str | None = None,
                                     history_end_days=history_end_days)
     truth = {**SYNTHETIC_TRUTH, **hidden}
     signal = effect_signal(case, SYNTHETIC_TRUTH) if effects else None
-    (Path(dest) / "hidden_effect.json").write_text(_effects_json(effects, truth, signal))
+    (Path(dest) / "hidden_effect.json").write_text(_effects_json(effects, truth, signal, kind))
     return case, (effects[0] if effects else None)
 
 
@@ -287,7 +288,7 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
     case.write_text(f'[case]\nname = "{name}"\ndeck = "{deck}"\nobserved = "observed.csv"\n'
                     f"history_end_days = {history_end_days:g}\n")
     signal = effect_signal(case, truth, sim) if effects else None
-    (dest / "hidden_effect.json").write_text(_effects_json(effects, values, signal))
+    (dest / "hidden_effect.json").write_text(_effects_json(effects, values, signal, kind))
     return case, (effects[0] if effects else None)
 
 
@@ -423,7 +424,10 @@ def judge_effects(doc: dict, effects: list[HiddenEffect], signal: dict | None = 
         return judge(doc, effects[0] if effects else None, signal)
     accepted = doc.get("accepted") or ([doc["selected"]] if doc.get("selected") else [])
     first = doc["causes"][0]
-    named = {e.candidate.id: (first["kind"] == "unexplained" if e.kind == "unexplained"
+    # an effect of no family the fitted history hardly shows: `none` is right too
+    invisible = not (signal or {}).get("visible_in_fitted_history", True)
+    no_family = ("unexplained", "none") if invisible else ("unexplained",)
+    named = {e.candidate.id: (first["kind"] in no_family if e.kind == "unexplained"
                               else any(names(a, e) for a in accepted)) for e in effects}
     g = doc["gain"]
     held = g["heldout_after"] is not None and g["heldout_before"] is not None and \

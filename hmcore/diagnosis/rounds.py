@@ -66,7 +66,12 @@ def diagnose_window(case: Case, evaluate_batch: EvaluateBatch, settings: Diagnos
     if isinstance(p, str):
         doc["rounds"], doc["no_second_round"] = [], p
         return Outcome(doc, d, None)
-    doc2 = run_round(p.diagnosis, lambda: forward.start_round(p, d), on_step, f"{prefix}2-")
+    try:
+        doc2 = run_round(p.diagnosis, lambda: forward.start_round(p, d), on_step,
+                         f"{prefix}2-")
+    except RuntimeError as exc:  # e.g. a calibration that failed: round 1's answer stands
+        doc["rounds"], doc["no_second_round"] = [], f"round 2 failed: {exc}"
+        return Outcome(doc, d, None)
     doc, final = forward.combine(d, doc, p, doc2)
     return Outcome(doc, d, final)
 
@@ -102,11 +107,16 @@ def diagnose_all(case: Case, evaluate_batch: EvaluateBatch, *, calibrated: dict 
             origin = f"the budget left ({left} calls) cannot cover a later window"
         else:
             log(f"later origin: the history fitted to day {origin:g}")
-            out2 = diagnose_window(later, counted, s2, out.document["calibrated"], None,
-                                   lambda msg: log(f"later window: {msg}"), on_step, "later-")
-            doc, named = origins.combine(out.document, out2.document)
-            out = out2 if named else out
-            out = Outcome(doc, out.diagnosis, out.final)
+            try:
+                out2 = diagnose_window(later, counted, s2, out.document["calibrated"], None,
+                                       lambda msg: log(f"later window: {msg}"), on_step,
+                                       "later-")
+            except RuntimeError as exc:  # the first window's answer stands
+                origin = f"the later window (fitted to day {origin:g}) failed: {exc}"
+            else:
+                doc, named = origins.combine(out.document, out2.document)
+                out = out2 if named else out
+                out = Outcome(doc, out.diagnosis, out.final)
     if isinstance(origin, str):
         out.document["windows"], out.document["named_on"] = [], None
         out.document["no_later_window"] = origin
