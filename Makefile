@@ -1,5 +1,5 @@
 # The two commands of the README. Both create ./.venv and install hmflow into it first.
-#   make run    - install, then run the main job (a 200-call SAC campaign on the built-in synthetic case)
+#   make run    - install, then run the main job (a 200-call campaign of the default method, lm, on the built-in synthetic case)
 #   make test   - install (with test extras, Debian's OPM `flow` and chromium when apt is usable), then run the tests
 #                 (real OPM, Prefect and Parquet integration tests included; `-m slow` ones are the long sweeps)
 PY ?= python3

@@ -46,6 +46,8 @@ def main() -> None:
     ap.add_argument("--storage", type=Path, default=Path("hmflow-storage"))
     ap.add_argument("--campaign", default="synthetic-sac-seed0")
     ap.add_argument("--run", action="store_true", help="run `hmflow run` first")
+    ap.add_argument("--agent", default="sac", help="the method of the campaign --run makes "
+                    "(default sac, as the lab notes measured; the campaign name says it)")
     ap.add_argument("--budget", type=int, default=200)
     ap.add_argument("--k", type=int, default=30, help="noise realisations for the band")
     ap.add_argument("--json", type=Path)
@@ -58,7 +60,8 @@ def main() -> None:
 
     if args.run:
         subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--budget", str(args.budget),
-                        "--storage", str(args.storage), "--campaign", args.campaign], check=True,
+                        "--agent", args.agent, "--storage", str(args.storage), "--campaign",
+                        args.campaign], check=True,
                        timeout=24 * 3600)
     case_toml = ensure_synthetic_case()
     case = load_case(case_toml)

@@ -12,7 +12,7 @@ Python::
     from deployments.campaign import campaign_parameters, deploy_campaign, deploy_report, ensure_work_pool
 
     ensure_work_pool("hmflow-process")
-    params = campaign_parameters(case="synthetic", agent="sac", budget=200, storage="/data/hm")
+    params = campaign_parameters(case="synthetic", agent="lm", budget=200, storage="/data/hm")
     deploy_campaign("nightly", cron="0 2 * * *", timezone="UTC", parameters=params)
     deploy_report("nightly", storage=params["storage"], campaign=params["campaign"])
 
@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 from uuid import UUID
 
-from hmcore.agents import METHODS
+from hmcore.agents import DEFAULT_AGENT, METHODS
 from hmcore.case import BUILTIN_CASES, case_name
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -69,7 +69,7 @@ def ensure_work_pool(name: str = DEFAULT_POOL):
     return pool
 
 
-def campaign_parameters(case: str = "synthetic", agent: str = "sac", budget: int = 200,
+def campaign_parameters(case: str = "synthetic", agent: str = DEFAULT_AGENT, budget: int = 200,
                         workers: int = 2, seed: int = 0, storage: str | Path = DEFAULT_STORAGE,
                         campaign: str | None = None,
                         agent_settings: dict | None = None, task_runner: str = "threads",
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timezone", default="UTC", help="IANA timezone of the cron (default %(default)s)")
     p.add_argument("--no-schedule", action="store_true", help="deploy without a schedule")
     p.add_argument("--case", default="synthetic", help="case TOML or 'synthetic' (default %(default)s)")
-    p.add_argument("--agent", default="sac", choices=list(METHODS))
+    p.add_argument("--agent", default=DEFAULT_AGENT, choices=list(METHODS))
     p.add_argument("--budget", type=int, default=200, help="simulator calls (default %(default)s)")
     p.add_argument("--workers", type=int, default=2, help="simulations at once (default %(default)s)")
     p.add_argument("--seed", type=int, default=0)

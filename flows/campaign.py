@@ -12,7 +12,7 @@ from typing import Annotated, Literal
 from prefect import flow, get_run_logger
 from pydantic import Field
 
-from hmcore.agents import METHODS, make_proposer, method_version
+from hmcore.agents import DEFAULT_AGENT, METHODS, make_proposer, method_version
 from hmcore.calibration import Job, calibrate
 from hmcore.evaluation import SCORING_VERSION
 from flows.labels import Progress, campaign_run_name, tag_flow_run
@@ -121,7 +121,7 @@ Agent = Literal[METHODS]  # a choice in the UI's run form
 
 
 @flow(name="hmflow-campaign", log_prints=True, flow_run_name=campaign_run_name)
-def campaign_flow(case: str = "synthetic", agent: Agent = "sac",
+def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
                   budget: Annotated[int, Field(ge=1)] = 200,
                   workers: Annotated[int, Field(ge=1)] = 2, seed: Annotated[int, Field(ge=0)] = 0,
                   storage: str = DEFAULT_STORAGE, campaign: str | None = None,

@@ -22,7 +22,7 @@ def campaign_run_name() -> str:
     p = flow_run.parameters
     try:
         name = p.get("campaign") or default_campaign_name(case_name(p.get("case", "synthetic")),
-                                                          p.get("agent", "sac"), p.get("seed", 0))
+                                                          p.get("agent", default_agent()), p.get("seed", 0))
     except (OSError, ValueError):  # a bad case path: the flow itself reports it
         name = "campaign"
     return f"{name}-{_stamp()}"
@@ -76,3 +76,11 @@ class Progress:
         update_progress_artifact(self.id, min(100.0, 100.0 * self.done / self.budget),
                                  description=f"{self.campaign}: {self.done}/{self.budget} calls, "
                                              f"{best}")
+
+
+def default_agent() -> str:
+    """The campaign's default method (imported here, not at load: the agents pull in
+    gymnasium, and the report flow imports these labels too)."""
+    from hmcore.agents import DEFAULT_AGENT
+
+    return DEFAULT_AGENT

@@ -17,7 +17,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from hmcore.agents import ABLATIONS, AGENTS, METHODS
+from hmcore.agents import ABLATIONS, AGENTS, DEFAULT_AGENT, METHODS
 from hmcore.errors import CaseError
 from hmcore.units import deck_unit
 from hmflow.console import (Watch, bench_poll, campaign_poll, diagnosis_poll, prefect_environment,
@@ -318,9 +318,11 @@ def _columns(kind: str) -> list:
 
 @app.command()
 def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
-        agent: str = typer.Option("sac", "--agent", help="sac (hmflow's default), sac-paper (the "
-                                  "reference paper's SAC exactly: SB3 learn(), budget a multiple "
-                                  "of --workers), random, sobol, cmaes, de, bo, lm, esmda"),
+        agent: str = typer.Option(DEFAULT_AGENT, "--agent", help="lm (the default: least "
+                                  "squares on the whitened residuals, the benchmark's winner), "
+                                  "sac (hmflow's SAC), sac-paper (the reference paper's SAC "
+                                  "exactly: SB3 learn(), budget a multiple of --workers), "
+                                  "random, sobol, cmaes, de, bo, esmda"),
         budget: int = typer.Option(200, "--budget", min=1, help="Simulator calls"),
         workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
         seed: int = typer.Option(0, "--seed"),
@@ -659,7 +661,7 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
            no_schedule: bool = typer.Option(False, "--no-schedule", help="Deploy without a "
                                             "schedule (run it from the UI)"),
            case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
-           agent: str = typer.Option("sac", "--agent", help="Calibration method"),
+           agent: str = typer.Option(DEFAULT_AGENT, "--agent", help="Calibration method"),
            budget: int = typer.Option(200, "--budget", min=1),
            workers: int = typer.Option(2, "--workers", min=1),
            seed: int = typer.Option(0, "--seed", min=0),

@@ -91,3 +91,21 @@ def test_budget_problems_are_stated_before_anything_runs():
     assert budget_problem("esmda", 6, 2) is None and budget_problem("cmaes", 7, 2) is None
     with pytest.raises(ValueError, match="takes no settings"):
         make_proposer("cmaes", 5, 0, learning_rate=1e-3)
+
+
+def test_lm_fills_every_worker_at_its_serial_steps():
+    """lm's trial points go out with the first W - 1 Jacobian runs at that point (version 2):
+    every batch but the one the budget cuts fills the W workers, where version 1 sent each
+    trial point alone; the Jacobian runs are labelled as such."""
+    sizes: list[int] = []
+
+    def batch(jobs):
+        sizes.append(len(jobs))
+        return fake_batch(jobs)
+
+    proposer = make_proposer("lm", SPACE.dim, 0, WORKERS, BUDGET)
+    records = calibrate(proposer, SPACE, batch, BUDGET, WORKERS)
+    assert len(records) == BUDGET and sum(sizes) == BUDGET
+    assert all(n % WORKERS == 0 for n in sizes[:-1]), sizes
+    phases = [r["phase"] for r in records]
+    assert phases[:2] == ["explore", "jacobian"] and phases.count("jacobian") > BUDGET / 2

@@ -48,17 +48,19 @@ class BudgetedCalls:
         return self.budget - len(self.records)
 
     def run(self, actions: np.ndarray, lanes: list[int] | None = None,
-            phase: str = "explore") -> list[dict]:
-        """Evaluate each row of ``actions`` (clipped to [-1, 1]) as one call; returns their
-        records in order. When the budget ends inside the batch, the calls that fit are made
-        and :class:`BudgetExhausted` is raised."""
+            phase: str = "explore", phases: list[str] | None = None) -> list[dict]:
+        """Evaluate each row of ``actions`` (clipped to [-1, 1]) as one call (``phases``: each
+        call's phase, default ``phase`` for all); returns their records in order. When the
+        budget ends inside the batch, the calls that fit are made and
+        :class:`BudgetExhausted` is raised."""
         from hmcore.calibration import Job
 
         actions = np.clip(np.atleast_2d(np.asarray(actions, float)), -1.0, 1.0)
         fit = actions[: max(0, self.left)]
         start = len(self.records)
         jobs = [Job(start + i, self.space.to_values(a), tuple(float(x) for x in a),
-                    (lanes[i] if lanes else i), phase) for i, a in enumerate(fit)]
+                    (lanes[i] if lanes else i), phases[i] if phases else phase)
+                for i, a in enumerate(fit)]
         # a journaled call must be the one asked for, checked before anything new runs
         replayed = {j.index: check_replay(self.done[j.index], j, self.method)
                     for j in jobs if j.index in self.done}

@@ -9,6 +9,12 @@ of step ``FD_STEP`` in action units, its d runs sent to the workers together; ev
 call. A failed run has no residuals: at the current point it ends that descent, in a Jacobian
 its column is left at 0. When a descent converges with budget left, a new one starts from a
 uniform-random point (the first starts at the box's centre), until the budget is spent.
+
+Workers are not left idle by the serial steps (version 2, 2026-11-25): each trial point is
+sent together with the first W - 1 finite-difference runs of the Jacobian at that point, so
+that when the step is accepted (it usually is) those columns are already there. A rejected
+step wastes them: W - 1 calls. Version 1 sent the trial point alone, and a 2-worker campaign
+ran 32 % above the simulator time per worker on PUNQ-S3 (one worker idle at every step).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import numpy as np
 from hmcore.agents.budget import BudgetedCalls, BudgetExhausted
 
 FD_STEP = 0.05
+VERSION = 2  # 2: speculative Jacobian columns beside each trial point (see above)
 
 
 class _DescentFailed(Exception):
@@ -54,11 +61,22 @@ class LMDriver:
         calls = BudgetedCalls(space, evaluate_batch, budget, done, self.name)
         x0 = np.zeros(self.dim)
         cache: dict[tuple, np.ndarray] = {}
+        columns: dict[tuple, dict[int, dict]] = {}  # speculative Jacobian runs at a point
+
+        def key_of(x: np.ndarray) -> tuple:
+            return tuple(np.round(x, 12))
+
+        def steps_at(x: np.ndarray) -> np.ndarray:
+            return np.where(x + FD_STEP <= 1.0, FD_STEP, -FD_STEP)
 
         def fun(x: np.ndarray) -> np.ndarray:
-            key = tuple(np.round(x, 12))
+            key = key_of(x)
             if key not in cache:
-                r = residuals_of(calls.run(x[None])[0])
+                extra = min(max(workers - 1, 0), self.dim, max(calls.left - 1, 0))
+                points = np.vstack([x[None], x[None, :] + np.diag(steps_at(x))[:extra]])
+                records = calls.run(points, phases=["explore"] + ["jacobian"] * extra)
+                columns[key] = dict(enumerate(records[1:]))
+                r = residuals_of(records[0])
                 if r is None:
                     raise _DescentFailed
                 cache[key] = r
@@ -66,11 +84,16 @@ class LMDriver:
 
         def jac(x: np.ndarray) -> np.ndarray:
             f0 = fun(x)
-            steps = np.where(x + FD_STEP <= 1.0, FD_STEP, -FD_STEP)
-            points = x[None, :] + np.diag(steps)
+            steps = steps_at(x)
+            have = columns.get(key_of(x), {})
+            todo = [k for k in range(self.dim) if k not in have]
+            runs = dict(have)
+            if todo:
+                points = x[None, :] + np.diag(steps)[todo]
+                runs.update(zip(todo, calls.run(points, phase="jacobian")))
             J = np.zeros((f0.size, self.dim))
-            for k, rec in enumerate(calls.run(points, phase="jacobian")):
-                r = residuals_of(rec)
+            for k in range(self.dim):
+                r = residuals_of(runs[k])
                 if r is not None and r.size == f0.size:
                     J[:, k] = (r - f0) / steps[k]
             return J
@@ -86,5 +109,6 @@ class LMDriver:
             except _DescentFailed:
                 self.descents.append({"x": None, "cost": None, "status": "failed run"})
             cache.clear()
+            columns.clear()
             x0 = self.rng.uniform(-1.0, 1.0, self.dim)
         return calls.records
