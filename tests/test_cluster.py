@@ -113,6 +113,36 @@ def test_a_campaign_runs_on_two_dask_worker_processes(tmp_path):
     assert ran_in <= set(pids.values()) and len(ran_in) == 2, (ran_in, pids)
 
 
+def _worker_running(workers: list[subprocess.Popen], run_dirs: list[Path]
+                    ) -> subprocess.Popen | None:
+    """The worker (its `dask worker` process) whose process tree runs a simulation in one of
+    ``run_dirs``: the simulator's command line names its run directory; its parents lead to
+    the worker. None while no such simulation is running."""
+    by_pid = {w.pid: w for w in workers}
+    wanted = [str(d) for d in run_dirs]
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+        if not any(d in cmd for d in wanted):
+            continue
+        pid = int(proc.name)
+        for _ in range(8):  # up the parent chain to a worker
+            if pid in by_pid:
+                return by_pid[pid]
+            try:
+                stat = (Path("/proc") / str(pid) / "stat").read_text()
+            except OSError:
+                break
+            pid = int(stat.rsplit(")", 1)[1].split()[1])
+            if pid <= 1:
+                break
+    return None
+
+
 def test_a_worker_killed_mid_call_loses_and_duplicates_nothing(tmp_path):
     with dask_cluster(tmp_path) as cluster:
         run = _run(tmp_path, cluster["address"], "killed")
@@ -124,8 +154,11 @@ def test_a_worker_killed_mid_call_loses_and_duplicates_nothing(tmp_path):
             if any(re.fullmatch(r"00000[2-5]", n) for n in started):
                 busy = {r["index"] for r in _records(tmp_path, "killed")}
                 running = [n for n in started if int(n[:6]) not in busy]
-                if running:
-                    victim, killed_at = cluster["workers"][0], running
+                # the worker whose simulator runs that call (calls go to whichever worker
+                # frees first, so worker 0 may be idle at that moment)
+                owner = _worker_running(cluster["workers"], [runs / n for n in running])
+                if owner is not None:
+                    victim, killed_at = owner, running
                     _kill_group(victim)
             time.sleep(0.2)
         assert victim is not None, "no call was seen running"
