@@ -5,6 +5,11 @@
     python benchmarks/bench_diagnosis.py --case punq --kinds all --seeds 21
     python benchmarks/bench_diagnosis.py --case punq --record-end 0 --history-end 0  # as `hide`
     python benchmarks/bench_diagnosis.py --case punq-real        # PUNQ-S3's measured history
+    python benchmarks/bench_diagnosis.py --case synthetic --kinds generators --seeds 31 32 33 \
+        --jsonl benchmarks/results/diagnosis-sweep/synthetic.jsonl   # issue 18's sweep
+    python benchmarks/bench_diagnosis.py --case punq --kinds generators --seeds 31 32 33 \
+        --record-end 0 --history-end 0 --jsonl benchmarks/results/diagnosis-sweep/punqs3.jsonl
+    python benchmarks/bench_diagnosis.py --table benchmarks/results/diagnosis-sweep/*.jsonl
 
 For each (kind, seed) a case is written whose truth hides one extension drawn by the seed
 (:mod:`hmcore.diagnosis.hidden`): the synthetic case (seeded fields and noise, the known
@@ -14,7 +19,13 @@ AR(1) noise, no sigma in the CSV, record to day 2936, fitted to day 2200; ``--re
 the base model, ``workers`` simulations at a time, and is judged by
 :func:`hmcore.diagnosis.hidden.judge`: right kind (and well / layer / plane) ranked first,
 selected, held-back misfit improved. Controls hide nothing and must report ``none``.
-Nothing is asserted; the table and the JSON go into the notes.
+``--kinds generators``: the effects beyond the library's geometry
+(:mod:`hmcore.diagnosis.generators`), judged by :func:`hmcore.diagnosis.hidden.judge_effects`
+(each effect named by an accepted cause, its family and wells; an effect of no family:
+``unexplained``, or ``none`` when the fitted history hardly shows it).
+``--jsonl FILE``: one line per case, appended as each ends; a rerun skips the cases the file
+already holds (a sweep runs in slices across sessions). ``--table FILE...``: the markdown
+table of such files (docs/diagnosis.md). Nothing is asserted.
 """
 
 from __future__ import annotations
@@ -38,8 +49,8 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
         history_end: float = 2200.0, record_end: float = 2936.0) -> dict:
     from hmcore.case import load_case
     from hmcore.diagnosis import diagnose, local_evaluator
-    from hmcore.diagnosis.hidden import (judge, write_hidden_deck_case,
-                                         write_hidden_synthetic_case)
+    from hmcore.diagnosis.hidden import (judge, judge_effects, load_hidden_effects,
+                                         write_hidden_deck_case, write_hidden_synthetic_case)
 
     tmp = root / f"{case}-{kind or 'control'}-{seed}"
     t0 = time.perf_counter()
@@ -63,41 +74,100 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
     shutil.rmtree(tmp / "runs", ignore_errors=True)
     signal = (json.loads((tmp / "case" / "hidden_effect.json").read_text()).get("signal")
               if case != "punq-real" else None) or {}
-    out = judge(doc, effect, signal) if case != "punq-real" else {
+    effects = (load_hidden_effects(tmp / "case" / "hidden_effect.json")
+               if case != "punq-real" else [])
+    generated = any(e.generated for e in effects) or len(effects) > 1
+    out = (judge_effects(doc, effects, signal) if generated else judge(doc, effect, signal)
+           ) if case != "punq-real" else {
         "ranking": [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:5]
                     if c["chi2"] is not None], "verdict": doc["verdict"], "gain": doc["gain"]}
     out.update({"signal_fit": signal.get("chi2_fit"), "signal_heldout": signal.get("chi2_heldout"),
                 "signal_fit_after_globals": signal.get("chi2_fit_after_globals"),
                 "visible": signal.get("visible_in_fitted_history")})
+    out["accepted_gains"] = [{"id": a["id"], "round": a["round"], **a["gain"]}
+                             for a in doc.get("accepted") or []]
+    out["named_on"] = doc.get("named_on")
+    out["hidden_values"] = {e.candidate.id: e.value for e in effects}
     out.update({"case": case, "kind": kind or "control", "seed": seed, "wall_s": wall,
                 "simulations": doc["cost"]["simulations"], "out": str(tmp / "out"),
                 "selected": out.get("selected", doc["selected"] and doc["selected"]["id"])})
     return out
 
 
+def _read_jsonl(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _fmt(x, spec: str = ".3g") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def table(rows: list[dict]) -> str:
+    """The markdown table of sweep rows: one line per case, then one per (case, kind)."""
+    lines = ["| case | kind | seed | hidden (value) | signal chi2 fit / after globals | "
+             "answer (window) | accepted: held-back E before -> after | found | sims | min |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        hidden = ", ".join(f"{k} ({v:.3g})" for k, v in (r.get("hidden_values") or {}).items())
+        gains = "; ".join(f"{a['id']}: {_fmt(a['heldout_before'], '.4f')} -> "
+                          f"{_fmt(a['heldout_after'], '.4f')}"
+                          for a in r.get("accepted_gains") or []) or "-"
+        first = (r.get("ranking") or ["-"])[0]
+        answer = (r.get("verdict") or r.get("error") or "-").split(":")[0][:40]
+        lines.append(
+            f"| {r['case']} | {r['kind']} | {r['seed']} | {hidden or '-'} | "
+            f"{_fmt(r.get('signal_fit'), '.0f')} / {_fmt(r.get('signal_fit_after_globals'), '.0f')}"
+            f" | {answer}; first {first} ({r.get('named_on') or 'fitted window'}) | {gains} | "
+            f"{'yes' if r.get('found') else 'no'} | {r.get('simulations', '-')} | "
+            f"{_fmt((r.get('wall_s') or 0) / 60, '.1f')} |")
+    lines += ["", "| case | kind | cases | visible | found | mean simulations |",
+              "|---|---|---|---|---|---|"]
+    for key in dict.fromkeys((r["case"], r["kind"]) for r in rows):
+        sub = [r for r in rows if (r["case"], r["kind"]) == key]
+        n = len(sub)
+        lines.append(f"| {key[0]} | {key[1]} | {n} | {sum(bool(r.get('visible')) for r in sub)}"
+                     f"/{n} | {sum(bool(r.get('found')) for r in sub)}/{n} | "
+                     f"{sum(r.get('simulations', 0) for r in sub) / n:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     from hmcore.diagnosis.extensions import KINDS
+    from hmcore.diagnosis.generators import GENERATORS
 
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--case", choices=("synthetic", "punq", "punq-real"), default="synthetic")
-    ap.add_argument("--kinds", nargs="+", default=["all"])
+    ap.add_argument("--kinds", nargs="+", default=["all"],
+                    help="library kinds or generators; 'all': the library's kinds, "
+                         "'generators': every generator")
     ap.add_argument("--seeds", nargs="*", type=int, default=[11, 12])
     ap.add_argument("--controls", nargs="*", type=int, default=[])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--root", type=Path)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--jsonl", type=Path, help="append one line per case; skip those it holds")
+    ap.add_argument("--table", type=Path, nargs="+", help="print the table of these JSONL files")
     ap.add_argument("--history-end", type=float, default=2200.0,
                     help="punq: days fitted (0: 75 %% of the record, as `hmflow hide`)")
     ap.add_argument("--record-end", type=float, default=2936.0,
                     help="punq: last day of the measured record (0: the schedule's end)")
     args = ap.parse_args()
-    kinds = list(KINDS) if args.kinds == ["all"] else args.kinds
+    if args.table:
+        print(table([r for f in args.table for r in _read_jsonl(f)]), end="")
+        return
+    kinds = (list(KINDS) if args.kinds == ["all"] else
+             list(GENERATORS) if args.kinds == ["generators"] else args.kinds)
     root = args.root or Path(tempfile.mkdtemp(prefix="hmflow-bench-diagnosis-"))
     jobs = ([(None, 0)] if args.case == "punq-real" else
             [(k, s) for k in kinds for s in args.seeds] + [(None, s) for s in args.controls])
+    done = {(r["kind"], r["seed"]) for r in _read_jsonl(args.jsonl)} if args.jsonl else set()
     rows = []
     for kind, seed in jobs:
+        if (kind or "control", seed) in done:
+            continue
         try:
             row = one(args.case, kind, seed, root, args.workers, args.history_end,
                       args.record_end)
@@ -109,25 +179,17 @@ def main() -> None:
                                                    "ranked_first", "selected", "signal_fit",
                                                    "signal_heldout", "signal_fit_after_globals",
                                                    "visible", "wall_s",
-                                                   "simulations", "ranking", "error")}),
-              flush=True)
+                                                   "simulations", "ranking", "error")},
+                         default=str), flush=True)
         if args.json:
             args.json.write_text(json.dumps(rows, indent=2, default=str))
-    if args.case != "punq-real":
-        print("\nkind | cases | visible in the fitted history (after the globals absorb) | "
-              "ranked first | found (first + selected + held-back better) | mean wall s | "
-              "mean simulations")
-        for kind in kinds + (["control"] if args.controls else []):
-            sub = [r for r in rows if r["kind"] == kind]
-            if sub:
-                n = len(sub)
-                first = sum(bool(r.get("ranked_first")) for r in sub)
-                found = sum(bool(r.get("found")) for r in sub)
-                wall = sum(r.get("wall_s", 0) for r in sub) / n
-                sims = sum(r.get("simulations", 0) for r in sub) / n
-                seen = sum(bool(r.get("visible")) for r in sub)
-                print(f"{kind} | {n} | {seen}/{n} | {first}/{n} | {found}/{n} | {wall:.0f} | "
-                      f"{sims:.0f}")
+        if args.jsonl:
+            args.jsonl.parent.mkdir(parents=True, exist_ok=True)
+            with args.jsonl.open("a") as fh:
+                fh.write(json.dumps(row, default=str) + "\n")
+    if rows and args.case != "punq-real":
+        print()
+        print(table(rows), end="")
     print(f"\noutputs under {root}")
 
 

@@ -262,11 +262,14 @@ def diagnose_command(case: str = "synthetic", storage: Path = Path(DEFAULT_STORA
                      campaign: Optional[str] = None,
                      calibrated: Optional[dict[str, float]] = None, console=None,
                      task_runner: Runner = "threads", dask_address: Optional[str] = None,
-                     kinds: Optional[list[str]] = None) -> dict:
+                     kinds: Optional[list[str]] = None,
+                     settings: Optional[dict[str, Any]] = None) -> dict:
     """``hmflow diagnose``: run the flow with ``workers`` simulations at a time and print the
-    ranked causes, the gain and the path of diagnosis.json. Returns the flow's result."""
+    ranked causes, the gain and the path of diagnosis.json. Returns the flow's result
+    (``settings``: overrides of :class:`DiagnosisSettings`, as the flow takes them)."""
     result = diagnose_flow(case=str(case), storage=str(Path(storage).resolve()), budget=budget,
                            campaign=campaign, workers=workers, calibrated=calibrated,
-                           task_runner=task_runner, dask_address=dask_address, kinds=kinds)
+                           task_runner=task_runner, dask_address=dask_address, kinds=kinds,
+                           settings=settings)
     print_diagnosis(result, console)
     return result
