@@ -116,10 +116,13 @@ def table(rows: list[dict]) -> str:
                           for a in r.get("accepted_gains") or []) or "-"
         first = (r.get("ranking") or ["-"])[0]
         answer = (r.get("verdict") or r.get("error") or "-").split(":")[0][:40]
+        win = r.get("named_on")
+        win = (f"named on the window to day {win['fitted_to_day']:g}" if isinstance(win, dict)
+               else "first window")
         lines.append(
             f"| {r['case']} | {r['kind']} | {r['seed']} | {hidden or '-'} | "
             f"{_fmt(r.get('signal_fit'), '.0f')} / {_fmt(r.get('signal_fit_after_globals'), '.0f')}"
-            f" | {answer}; first {first} ({r.get('named_on') or 'fitted window'}) | {gains} | "
+            f" | {answer}; first {first} ({win}) | {gains} | "
             f"{'yes' if r.get('found') else 'no'} | {r.get('simulations', '-')} | "
             f"{_fmt((r.get('wall_s') or 0) / 60, '.1f')} |")
     lines += ["", "| case | kind | cases | visible | found | mean simulations |",
