@@ -8,7 +8,9 @@ file that must change) with
   ``COPY PERMX PERMY``;
 * ``MULTIREG``, ``MULTFLT`` and ``MULTREGT`` blocks there too for region, fault and
   between-region multipliers;
-* ``WPIMULT`` after every COMPDAT that connects a well with a productivity multiplier;
+* ``WPIMULT`` after every COMPDAT that connects a well with a productivity multiplier; a dated
+  one (``start_day``) in the schedule at the first report step at or after its day (a DATES or
+  TSTEP keyword is split there), then after the COMPDATs that follow;
 * COMPDAT item 11 (skin) rewritten for the targeted wells (and layers);
 * every ``INCLUDE`` path made absolute (unchanged include files are not copied).
 
@@ -102,10 +104,12 @@ class FaultMultiplier:
 @dataclass(frozen=True)
 class PiMultiplier:
     """Multiply the productivity (injectivity) index of ``wells``' connections: a ``WPIMULT``
-    record after every COMPDAT that (re)defines their connections."""
+    record after every COMPDAT that (re)defines their connections; from ``start_day`` on when
+    given (written at that report step, then after the COMPDATs that follow it)."""
 
     wells: tuple[str, ...]
     factor: float
+    start_day: float | None = None
 
 
 @dataclass(frozen=True)
@@ -149,7 +153,7 @@ def _parameter_edits(p: Parameter, value: float, info: DeckInfo) -> list[Edit]:
     if p.kind == "fault":
         return [FaultMultiplier(tuple(p.faults), value)]
     if p.kind == "wpimult":
-        return [PiMultiplier(tuple(p.wells or info.producers), value)]
+        return [PiMultiplier(tuple(p.wells or info.producers), value, p.start_day)]
     wells = p.wells or tuple(info.producers)
     return [SetSkin(tuple(wells), value, p.layers)]
 
@@ -336,7 +340,11 @@ def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[
                 out.append(f"INCLUDE\n  '{path}' /\n\n")
         elif block.keyword == "COMPDAT" and (skins or state["pimults"]):
             out.extend(_rewrite_compdat(block, skins, file).lines if skins else block.lines)
-            out.append(_wpimult_block(block, state["pimults"], state["pi_applied"]))
+            active = [m for m in state["pimults"] if m.start_day is None or m in state["dated"]]
+            out.append(_wpimult_block(block, active, state["pi_applied"]))
+        elif (block.keyword in ("DATES", "TSTEP") and state["section"] == "SCHEDULE"
+              and any(m.start_day is not None for m in state["pimults"])):
+            out.append(_dated_steps(block, info, state))
         elif any(e.keyword == block.keyword for e in items):
             out.extend(_rewrite_items(block, [e for e in items if e.keyword == block.keyword],
                                       file).lines)
@@ -378,6 +386,48 @@ def _wpimult_block(compdat: Block, pimults: list[PiMultiplier], applied: set) ->
             "WPIMULT\n" + "".join(lines) + "/\n\n") if lines else ""
 
 
+def _dated_steps(block: Block, info: DeckInfo, state: dict) -> str:
+    """A DATES or TSTEP block, counted in report steps (``state["step"]``), split after the
+    step that reaches a pending dated productivity multiplier's day, with its WPIMULT there:
+    one whole-well record per well (the connections defined so far, once)."""
+    if block.keyword == "DATES":
+        units = [" " + " ".join(expand_repeats(r)) + " /\n" for r in records(block.body)]
+    else:
+        units = [x for r in records(block.body) for x in expand_repeats(r)]
+    pieces: list[str] = []
+    current: list[str] = []
+
+    def flush() -> None:
+        if current:
+            body = ("".join(current) if block.keyword == "DATES"
+                    else " " + " ".join(current) + " /\n")
+            pieces.append(f"{block.keyword}\n{body}" + ("/\n\n" if block.keyword == "DATES"
+                                                         else "\n"))
+            current.clear()
+
+    for unit in units:
+        current.append(unit)
+        state["step"] += 1
+        day = info.report_days[min(state["step"], len(info.report_days) - 1)]
+        due = [m for m in state["pimults"] if m.start_day is not None
+               and m not in state["dated"] and day >= m.start_day - 1e-6]
+        if due:
+            flush()
+            lines = []
+            for m in due:
+                state["dated"].append(m)
+                for well in m.wells:
+                    if well in info.wells:
+                        state["pi_applied"].add(well)
+                        lines.append(f" '{well}' {m.factor:.10g} /\n")
+            pieces.append(f"-- productivity multipliers from day {day:g} added by hmflow\n"
+                          "WPIMULT\n" + "".join(lines) + "/\n\n")
+    if len(pieces) == 0:
+        return "".join(block.lines)
+    flush()
+    return "".join(pieces)
+
+
 def _int_or_none(token: str) -> int | None:
     try:
         value = int(float(token))
@@ -393,6 +443,8 @@ def _needs_inlining(path: Path, info: DeckInfo, skins: list[SetSkin], state: dic
     text = path.read_text(errors="replace")
     names = {b.keyword for b in split_blocks(text, info.keyword_names)}
     touched = {e.keyword for e in state["items"] + state["tables"]}
+    if any(m.start_day is not None for m in state["pimults"]):
+        touched |= {"DATES", "TSTEP"}
     return bool(((skins or state["pimults"]) and "COMPDAT" in names) or (names & touched)
                 or (state["section"] == "GRID" and names & set(SECTIONS)))
 
@@ -404,8 +456,15 @@ def render_deck(info: DeckInfo, edits: list[Edit]) -> str:
     state = {"section": None, "multiplied": False, "done": set(),
              "items": [e for e in edits if isinstance(e, ItemMultiply)],
              "tables": [e for e in edits if isinstance(e, TableTransform)],
-             "pimults": [e for e in edits if isinstance(e, PiMultiplier)], "pi_applied": set()}
+             "pimults": [e for e in edits if isinstance(e, PiMultiplier)], "pi_applied": set(),
+             "step": 0, "dated": []}
     text = _render_file(info.path, info, mults, skins, state)
+    late = [m for m in state["pimults"] if m.start_day is not None and m not in state["dated"]]
+    if late:
+        raise CaseError([Problem(str(info.path), f"the productivity multiplier of {list(late[0].wells)}"
+                                 f" starts at day {late[0].start_day:g}, after the schedule's "
+                                 f"last report step (day {info.end_days:g})",
+                                 f"give a start_day up to {info.end_days:g}")])
     missing = {e.keyword for e in state["items"] + state["tables"]} - state["done"]
     unreached = sorted({w for e in state["pimults"] for w in e.wells} - state["pi_applied"])
     if unreached:

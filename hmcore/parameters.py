@@ -24,7 +24,10 @@ Kinds (each turns a value into deck edits, see :mod:`hmcore.deck`):
   stretching the curve between it and its far end point (two-point end-point scaling, applied
   to the table itself; the value may be negative).
 * ``wpimult`` - multiply the productivity index of ``wells``' connections (all producers when
-  empty) with ``WPIMULT``, written after every COMPDAT that connects them.
+  empty) with ``WPIMULT``, written after every COMPDAT that connects them; with ``start_day``
+  only from the first report step at or after that day (a productivity change during the
+  history: the WPIMULT is written in the schedule at that step, and after the COMPDATs that
+  follow it).
 * ``fault`` - set the transmissibility multiplier (``MULTFLT``) of the faults named in
   ``faults`` (the deck's ``FAULTS`` names), replacing the deck's own multiplier.
 """
@@ -80,6 +83,7 @@ class Parameter(BaseModel):
     item: int | None = Field(default=None, ge=1)
     match: str | None = None
     mode: Literal["scale", "power", "endpoint"] = "scale"
+    start_day: Bound | None = Field(default=None, gt=0)
     description: str = ""
 
     @model_validator(mode="after")
@@ -145,6 +149,9 @@ class Parameter(BaseModel):
         if (self.kind in ("item_multiply", "wpimult")
                 or (self.kind == "relperm" and self.mode != "endpoint")) and self.low <= 0:
             raise ValueError(f"parameter '{self.name}' must have low > 0, got low={self.low}")
+        if self.start_day is not None and self.kind != "wpimult":
+            raise ValueError(f"parameter '{self.name}': start_day (an edit from a date on) is "
+                             f"only for kind 'wpimult', not '{self.kind}'")
         if self.box is not None:
             i1, i2, j1, j2, k1, k2 = self.box
             if not (1 <= i1 <= i2 and 1 <= j1 <= j2 and 1 <= k1 <= k2):

@@ -225,12 +225,19 @@ def punq_info():
 @needs_punq
 def test_extension_library_for_punq(punq_info, tmp_path):
     from hmcore.deck import prepare_run_deck
-    from hmcore.diagnosis.extensions import KINDS, build_candidates, extended_space
+    from hmcore.diagnosis.extensions import (KINDS, build_candidates, dated_productivity,
+                                             extended_space)
 
     space = ParameterSpace.reference()
     cands = build_candidates(punq_info, space, {"skin": 5.0})
     kinds = {c.kind for c in cands}
-    assert kinds == set(KINDS)
+    assert kinds == set(KINDS) - {"productivity_change"}  # dated by the ranking, below
+    assert {c.id for c in build_candidates(punq_info, space, {}, ("productivity_change",))} \
+        == {f"well_skin:{w}" for w in punq_info.producers}  # the probes its date scan reads
+    day = punq_info.report_days[30]
+    cands.append(dated_productivity(punq_info, "PRO-4", day))
+    assert cands[-1].parameter.start_day == day and cands[-1].details["start_date"] in \
+        cands[-1].description
     by = {c.id: c for c in cands}
     nx, ny, nz = punq_info.dims
     assert {c.wells[0] for c in cands if c.kind == "well_skin"} == set(punq_info.producers)
@@ -265,6 +272,7 @@ def test_extension_library_for_punq(punq_info, tmp_path):
     assert "'MULTX' 0.01 9 9 1 28 1 5 /" in text
     assert "'PERMX' 0.4 1 19 1 28 3 3 /" in text
     assert "41.25" in text  # AQUCT item 4 (137.5 mD) x 0.3
+    assert f"productivity multipliers from day {day:g}" in text and "'PRO-4' 0.5 /" in text
 
 
 def test_extension_library_for_the_synthetic_deck(tmp_path):
@@ -299,10 +307,13 @@ class LinearSimulator:
 
     def __init__(self, hidden: Parameter | None = None, hidden_value: float = 1.0, seed: int = 0,
                  hidden_from: float | None = None,
-                 also: tuple[tuple[Parameter, float], ...] = ()):
+                 also: tuple[tuple[Parameter, float], ...] = (), starts: bool = False):
         self.hidden, self.hidden_value = hidden, hidden_value
         self.also = also  # more hidden parameters (value), over the whole record
-        self.hidden_from = hidden_from  # the hidden parameter acts only after this day
+        self.hidden_from = hidden_from  # the hidden parameter acts only after this day:
+        # an effect that shows late (a candidate of that name too, as a layer the flood
+        # reaches late) or, ``starts``, a change at that day (the truth's alone)
+        self.starts = starts
         self.seed = seed
         self.days = np.arange(1, 61) * 30.0
         self.wells = ("PROD1", "PROD2", "PROD3", "PROD4")
@@ -337,8 +348,11 @@ class LinearSimulator:
             values = {**values, **{p.name: v for p, v in self.also}}
         for p in params:
             sig = self.signature(p.name)
+            if p.kind == "wpimult" and p.start_day is not None:  # a skin change from a date
+                sig = -self.signature(f"skin_{p.wells[0]}") * np.tile(
+                    self.days > p.start_day, sig.size // self.days.size)
             if self.hidden_from is not None and self.hidden is not None \
-                    and p.name == self.hidden.name:
+                    and p.name == self.hidden.name and (truth or not self.starts):
                 sig = sig * np.tile(self.days > self.hidden_from, sig.size // self.days.size)
             total += sig * self.change(p, values[p.name], values)
         frames = []
@@ -360,7 +374,8 @@ class LinearSimulator:
                                 sim_time_s=0.0, reason="") for v in values_list]
 
 
-def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0, hidden_from=None, also=()):
+def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0, hidden_from=None, also=(),
+                 starts=False):
     pytest.importorskip("opm.io")
     from hmcore.case import load_case
     from hmcore.diagnosis.hidden import noisy_history
@@ -368,7 +383,7 @@ def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0, hidden_from=No
 
     field_rng, _ = np.random.default_rng(0).spawn(2)
     (tmp_path / DECK_NAME).write_text(render_deck(make_fields(field_rng), 0))
-    sim = LinearSimulator(hidden, hidden_value, seed, hidden_from, also)
+    sim = LinearSimulator(hidden, hidden_value, seed, hidden_from, also, starts)
     case0 = SimpleNamespace(space=ParameterSpace.reference())
     truth = {"poro_mult": 1.05, "permx_mult": 1.5, "permy_mult": 0.7, "permz_mult": 0.6,
              "skin": 4.0}
@@ -499,6 +514,39 @@ def test_an_effect_only_the_held_back_history_shows_is_found_on_a_later_window(t
     assert control["causes"][0]["kind"] == "none" and control["windows"] == []
 
 
+def test_a_productivity_change_from_a_date_is_named_with_its_start(tmp_path):
+    """PROD3's completion changes at day 900, inside the fitted window (to day 1350): the
+    date scan of its well-skin probe finds the start, the dated candidate (WPIMULT from that
+    report day) gets its own probe, and it is the accepted cause, not the skin it would be
+    without a date. A control's scans stay under the Bonferroni line."""
+    from hmcore.diagnosis import DiagnosisSettings, diagnose
+    from hmcore.diagnosis.extensions import build_candidates
+    from hmcore.diagnosis.hidden import synthetic_deck_info
+
+    cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
+                                               ParameterSpace.reference(), {"skin": 4.0})}
+    case, sim, _ = _linear_case(tmp_path, cands["well_skin:PROD3"].parameter, 12.0,
+                                hidden_from=900.0, starts=True)
+    settings = DiagnosisSettings(plots=False, max_causes=1)
+    doc = diagnose(case, sim.evaluate_batch, settings=settings)
+    dating = {d["well"]: d for d in doc["ranking"]["dating"]}
+    assert dating["PROD3"]["dated"] and abs(dating["PROD3"]["day"] - 900) <= 31, dating
+    assert not any(d["dated"] for w, d in dating.items() if w != "PROD3"), dating
+    first = doc["causes"][0]
+    assert first["kind"] == "productivity_change" and first["wells"] == ["PROD3"], doc["verdict"]
+    assert abs(first["start_day"] - 900) <= 31
+    assert doc["selected"]["id"] == first["id"]
+    assert doc["accepted"][0]["start_day"] == first["start_day"]
+    assert "from day" in doc["verdict"]
+    g = doc["gain"]
+    assert g["heldout_after"] < g["heldout_before"]
+    (tmp_path / "c").mkdir()
+    case_c, sim_c, _ = _linear_case(tmp_path / "c")
+    control = diagnose(case_c, sim_c.evaluate_batch, settings=settings)
+    assert not any(d["dated"] for d in control["ranking"]["dating"]), control["ranking"]["dating"]
+    assert control["causes"][0]["kind"] == "none"
+
+
 def test_an_effect_of_no_family_is_unexplained_and_localised(tmp_path):
     """A hidden change no candidate family makes (here a parameter named like none of them,
     signature, acting over the whole record, x1.3): no candidate fits it beyond noise, and the
@@ -530,7 +578,7 @@ def test_budget_caps_the_simulator_calls_and_says_when_the_ranking_cannot_fit(tm
     doc = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(budget=60, plots=False))
     assert doc["cost"]["simulations"] == sim.calls <= 60
     sim2 = LinearSimulator()
-    with pytest.raises(ValueError, match="cannot cover the minimum of 39"):
+    with pytest.raises(ValueError, match="cannot cover the minimum of 41"):
         diagnose(case, sim2.evaluate_batch, settings=DiagnosisSettings(budget=25, plots=False))
     assert sim2.calls == 0  # refused before any simulation
 

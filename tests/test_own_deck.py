@@ -393,6 +393,46 @@ def test_wpimult_follows_every_compdat_of_its_well_and_changes_the_run(tmp_path)
 
 
 @pytest.mark.opm
+def test_a_dated_wpimult_changes_the_run_only_from_its_day(tmp_path):
+    from hmcore.deck import prepare_run_deck
+    from hmcore.deck_info import DeckInfo
+    from hmcore.errors import CaseError
+    from hmcore.parameters import Parameter, ParameterSpace
+    from hmcore.responses import read_responses
+    from hmcore.simulator import OpmFlow
+
+    info = DeckInfo.inspect(PUNQ_DECK)
+    days = info.report_days
+    n = next(n for n in range(len(days) // 2, len(days)) if days[n] - days[n - 1] > 10)
+    day = days[n]
+    dated = Parameter(name="pi4", kind="wpimult", wells=("PRO-4",), low=0.1, high=10.0,
+                      start_day=day - 3.0)  # between report steps: from the next one
+    runs = {}
+    for value in (1.0, 0.2):
+        run_deck = prepare_run_deck(PUNQ_DECK, {"pi4": value}, ParameterSpace(parameters=(dated,)),
+                                    tmp_path / f"r{value}", info)
+        text = run_deck.read_text()
+        # once, in the schedule at the step that reaches the day, not after the COMPDAT
+        assert text.count("\nWPIMULT\n") == 1
+        assert text.index("\nWPIMULT\n 'PRO-4' ") > text.index("\nCOMPDAT")
+        assert f"from day {day:g}" in text
+        result = OpmFlow().run(run_deck, tmp_path / f"r{value}")
+        assert result.summary_path is not None, result
+        r = read_responses(result.summary_path, ["PRO-4"])
+        runs[value] = r[r.quantity == "WBHP"].set_index("days").value
+    diff = (runs[0.2] - runs[1.0]).abs()
+    assert diff[diff.index < day - 1].max() < 1e-6 * runs[1.0].abs().max()  # nothing before
+    assert diff[diff.index >= day].max() > 1.0  # a fifth of the PI from that day: harder drawdown
+    late = Parameter(name="pi4", kind="wpimult", wells=("PRO-4",), low=0.1, high=10.0,
+                     start_day=info.end_days + 10)
+    with pytest.raises(CaseError, match="after the schedule's last report step"):
+        prepare_run_deck(PUNQ_DECK, {"pi4": 0.5}, ParameterSpace(parameters=(late,)),
+                         tmp_path / "late", info)
+    with pytest.raises(ValueError, match="start_day .* only for kind 'wpimult'"):
+        Parameter(name="s", kind="skin", low=0.0, high=5.0, start_day=100.0)
+
+
+@pytest.mark.opm
 def test_init_imports_a_summary_file(tmp_path):
     from hmcore.deck import prepare_run_deck
     from hmcore.deck_info import DeckInfo

@@ -91,7 +91,7 @@ def cause(c: Candidate, score: Score | None, conf: dict | None, evidence: str) -
     return {"kind": c.kind, "wells": list(c.wells), "layers": list(c.layers),
             "score": score.score if score else None, "chi2": score.chi2 if score else None,
             "description": c.description, "id": c.id, "evidence": evidence,
-            "machine": c.machine(),
+            "start_day": c.details.get("start_day"), "machine": c.machine(),
             "confirmed": None if conf is None else {k: conf[k] for k in CAUSE_CONFIRMED_KEYS}}
 
 
@@ -100,6 +100,7 @@ def accepted_cause(cause: dict, conf: dict, round_: int) -> dict:
     recalibration, and the whitened SSR drops (``conf``: its recalibration record)."""
     return {"id": cause["id"], "kind": cause["kind"], "wells": cause["wells"],
             "layers": cause["layers"], "description": cause["description"], "round": round_,
+            "start_day": cause.get("start_day"),
             "value": conf["value"],
             "gain": {k: conf[k] for k in ("fit_before", "fit_after", "heldout_before",
                                           "heldout_after")},

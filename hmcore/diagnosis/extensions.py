@@ -22,11 +22,19 @@ Families (see :func:`build_candidates`):
                             wells, through all layers
 ``relative_permeability``   exponent of the water table's krw (SWOF/SWFN column 2) and of the
                             gas table's krg (SGOF/SGFN column 2)
+``productivity_change``     the productivity index of one well multiplied from a report date
+                            on (``WPIMULT`` in the schedule, kind ``wpimult`` with
+                            ``start_day``): damage, scale or a stimulation during the history.
+                            Its candidates are dated by the ranking from the residuals
+                            (:func:`dated_productivity`, :mod:`hmcore.diagnosis.dating`), so
+                            the family itself builds none and searches ``well_skin`` with it
+                            (the date scan reads the well-skin probes)
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +45,8 @@ from hmcore.parameters import Parameter, ParameterSpace
 from hmcore.results import natural_key
 
 KINDS = ("well_skin", "regional_permeability", "layer_permeability", "vertical_permeability",
-         "aquifer_strength", "fault_transmissibility", "relative_permeability")
+         "aquifer_strength", "fault_transmissibility", "relative_permeability",
+         "productivity_change")
 
 REGION_HALF_WIDTH = 3
 """Half width (cells) of the box of a regional permeability candidate."""
@@ -47,9 +56,11 @@ AQUIFER_BOUNDS = (0.05, 20.0)
 FAULT_BOUNDS = (1e-4, 1.0)
 RELPERM_BOUNDS = (0.4, 3.0)
 WELL_SKIN_BOUNDS = (-5.0, 30.0)
+PI_BOUNDS = (0.05, 20.0)
 PROBE = {"well_skin": 6.0, "regional_permeability": 0.4, "layer_permeability": 0.4,
          "vertical_permeability": 0.1, "aquifer_strength": 0.3,
-         "fault_transmissibility": 0.01, "relative_permeability": 1.6}
+         "fault_transmissibility": 0.01, "relative_permeability": 1.6,
+         "productivity_change": 0.5}
 """Finite-difference probe: skin increment, or factor (multipliers), or exponent."""
 
 
@@ -322,12 +333,33 @@ def relative_permeability(info: DeckInfo, space: ParameterSpace,
     return out
 
 
+def productivity_change(info: DeckInfo, space: ParameterSpace,
+                        values: dict[str, float]) -> list[Candidate]:
+    """None at build time: the ranking dates them (:func:`dated_productivity`)."""
+    return []
+
+
+def dated_productivity(info: DeckInfo, well: str, day: float) -> Candidate:
+    """The candidate "``well``'s productivity index changed from report day ``day`` on": a
+    ``WPIMULT`` factor (neutral 1) written in the schedule at that step."""
+    date = (info.start + timedelta(days=day)).date().isoformat()
+    p = Parameter(name=f"pi_{_slug(well)}_from{day:g}".replace(".", "_"), kind="wpimult",
+                  wells=(well,), low=PI_BOUNDS[0], high=PI_BOUNDS[1], start_day=day,
+                  description=f"productivity multiplier of {well} from day {day:g}")
+    return Candidate(f"productivity_change:{well}@{day:g}", "productivity_change", p, (well,), (),
+                     f"the productivity of well {well} changed from day {day:g} ({date}) on: "
+                     "damage, scale or a stimulation during the history, not a skin it always "
+                     "had", 1.0, PROBE["productivity_change"],
+                     {"start_day": day, "start_date": date})
+
+
 FAMILIES = {"well_skin": well_skin, "regional_permeability": regional_permeability,
             "layer_permeability": layer_permeability,
             "vertical_permeability": vertical_permeability,
             "aquifer_strength": aquifer_strength,
             "fault_transmissibility": fault_transmissibility,
-            "relative_permeability": relative_permeability}
+            "relative_permeability": relative_permeability,
+            "productivity_change": productivity_change}
 
 
 def build_candidates(info: DeckInfo, space: ParameterSpace, values: dict[str, float] | None = None,
@@ -339,7 +371,10 @@ def build_candidates(info: DeckInfo, space: ParameterSpace, values: dict[str, fl
     """
     values = dict(values or {})
     out: list[Candidate] = []
-    for kind in (kinds or KINDS):
+    kinds = list(kinds or KINDS)
+    if "productivity_change" in kinds and "well_skin" not in kinds:
+        kinds.insert(0, "well_skin")  # the date scan reads the well-skin probes
+    for kind in kinds:
         if kind not in FAMILIES:
             raise ValueError(f"unknown extension kind {kind!r}; known: {list(KINDS)}")
         out.extend(FAMILIES[kind](info, space, values))

@@ -19,6 +19,10 @@ generator            the truth hides                                        a ri
 ``contact``          the initial water-oil contact moved (EQUIL item 3,    ``unexplained``
                      +-0.3-0.8 % of its depth): no family makes that        (or none, when
                                                                             invisible)
+``dated_productivity`` one producer's productivity index multiplied from a  the productivity-
+                     report date in 20-50 % of the schedule on (WPIMULT    change family, that
+                     x0.15-0.35 or x3-6: damage or a stimulation)           well, its start
+                                                                            date within 92 days
 ==================== ===================================================== ==================
 
 Each effect is a :class:`hmcore.diagnosis.hidden.HiddenEffect` whose candidate's ``kind`` is the
@@ -28,9 +32,6 @@ the candidates that count, where the family has several that would not). Strengt
 drawn a few times above the noise, as the library's (:data:`hidden.STRENGTH`). Pure: nothing
 here simulates; :func:`hmcore.diagnosis.hidden.write_hidden_synthetic_case` and
 ``write_hidden_deck_case`` run the truth.
-
-Not generated yet: an effect that starts at a report date (a skin or productivity change from
-a date needs a schedule edit the deck writer does not make).
 """
 
 from __future__ import annotations
@@ -41,11 +42,14 @@ import numpy as np
 
 from hmcore.deck_info import DeckInfo
 from hmcore.diagnosis.extensions import (FAULT_BOUNDS, KINDS, PERM_BOUNDS, Candidate,
-                                         build_candidates, well_column)
+                                         build_candidates, dated_productivity, well_column)
 from hmcore.parameters import Parameter, ParameterSpace
 from hmcore.results import natural_key
 
-GENERATORS = ("partial_fault", "offcentre_region", "relperm_endpoint", "two_kinds", "contact")
+GENERATORS = ("partial_fault", "offcentre_region", "relperm_endpoint", "two_kinds", "contact",
+              "dated_productivity")
+START_TOLERANCE_DAYS = 92.0
+"""A dated cause names a dated effect when its start is this close (about a quarter)."""
 TWO_KINDS_FROM = ("well_skin", "regional_permeability", "layer_permeability",
                   "aquifer_strength", "fault_transmissibility")
 """The kinds ``two_kinds`` draws its pair from (those every test deck offers)."""
@@ -69,7 +73,8 @@ def generate(name: str, seed: int, info: DeckInfo, space: ParameterSpace,
         a, b = rng.choice(len(offered), size=2, replace=False)
         return [draw_effect(offered[int(k)], seed, info, space, values) for k in (a, b)]
     c, value = {"partial_fault": _partial_fault, "offcentre_region": _offcentre_region,
-                "relperm_endpoint": _relperm_endpoint, "contact": _contact}[name](rng, info, space)
+                "relperm_endpoint": _relperm_endpoint, "contact": _contact,
+                "dated_productivity": _dated_productivity}[name](rng, info, space)
     return [HiddenEffect(c, value)]
 
 
@@ -166,3 +171,20 @@ def _contact(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, flo
                   f"than the model says (depth x{factor:.4f}): no family of the library",
                   details={"generated": "contact", "expect_wells": []})
     return c, factor
+
+
+def _dated_productivity(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
+    wells = sorted(info.producers, key=natural_key)
+    well = wells[int(rng.integers(len(wells)))]
+    end = info.end_days
+    days = [d for d in info.report_days if 0.2 * end <= d <= 0.5 * end]
+    if not days:
+        raise ValueError(f"the deck {info.path} has no report step in 20-50 % of its schedule "
+                         "to start a productivity change at")
+    day = float(days[int(rng.integers(len(days)))])
+    lib = dated_productivity(info, well, day)
+    c = Candidate(lib.id, lib.kind, lib.parameter, lib.wells, (), lib.description,
+                  details={"generated": "dated_productivity", "expect_wells": [well],
+                           "start_day": day})
+    lo, hi = (0.15, 0.35) if rng.random() < 0.6 else (3.0, 6.0)
+    return c, _log_uniform(rng, lo, hi)

@@ -76,7 +76,8 @@ class HiddenEffect:
                 "description": self.candidate.description,
                 "generated": self.candidate.details.get("generated"),
                 "expect_wells": self.candidate.details.get("expect_wells") or [],
-                "expect_ids": self.candidate.details.get("expect_ids") or []}
+                "expect_ids": self.candidate.details.get("expect_ids") or [],
+                "start_day": self.candidate.details.get("start_day")}
 
     @property
     def generated(self) -> str | None:
@@ -109,6 +110,8 @@ def chosen_effect(candidate_id: str, value: float, info: DeckInfo, space: Parame
 def _effect_of(e: dict) -> HiddenEffect:
     details = {"generated": e["generated"], "expect_wells": e.get("expect_wells") or [],
                "expect_ids": e.get("expect_ids") or []} if e.get("generated") else {}
+    if e.get("start_day") is not None:
+        details["start_day"] = float(e["start_day"])
     c = Candidate(id=e["id"], kind=e["kind"], parameter=Parameter.model_validate(e["parameter"]),
                   wells=tuple(e.get("wells", ())), layers=tuple(e.get("layers", ())),
                   description=e.get("description", ""), details=details)
@@ -154,6 +157,10 @@ def draw_effect(kind: str, seed: int, info: DeckInfo, space: ParameterSpace,
     """A random candidate of ``kind`` (optionally among ids ``choices``) and strength."""
     if kind not in KINDS:
         raise ValueError(f"unknown kind {kind!r}")
+    if kind == "productivity_change":  # dated by the diagnosis: drawn as by its generator
+        from hmcore.diagnosis.generators import generate
+
+        return generate("dated_productivity", seed, info, space, values)[0]
     rng = np.random.default_rng([seed, KINDS.index(kind)])
     every = build_candidates(info, space, values, (kind,))
     cands = [c for c in every if choices is None or c.id in choices]
@@ -403,6 +410,13 @@ def names(cause: dict, effect: HiddenEffect) -> bool:
     h = effect.candidate
     if cause["kind"] != h.kind:
         return False
+    start = h.details.get("start_day")
+    if start is not None:  # a dated effect: the cause's start date too
+        from hmcore.diagnosis.generators import START_TOLERANCE_DAYS
+
+        got = cause.get("start_day")
+        if got is None or abs(float(got) - float(start)) > START_TOLERANCE_DAYS:
+            return False
     if effect.generated:
         ids = h.details.get("expect_ids")
         return set(h.details.get("expect_wells") or []) <= set(cause["wells"]) and \

@@ -85,6 +85,15 @@ class DiagnosisSettings:
     (:mod:`hmcore.diagnosis.origins`; empty: never)."""
     later_min_heldout: int = 20
     """... leaving at least this many observed points to hold back."""
+    dated_max: int = 2
+    """Wells whose productivity change the ranking dates (``productivity_change``): at most
+    this many dated candidates, one probe run each (see :mod:`hmcore.diagnosis.dating`)."""
+    dating_alpha: float = 0.05
+    """A start date is kept when its chi2 gain over the undated change reaches what noise
+    makes with this probability over the dates scanned (Bonferroni, chi-square with 1 degree
+    of freedom: :func:`hmcore.diagnosis.dating.date_threshold`)."""
+    dating_min_after: int = 6
+    """A date is scanned when the well has at least this many fitted points after it."""
     tie_band: float = 10.0
     """Recalibrated candidates whose fitted SSR is within this of the best fit the fitted
     history cannot tell apart: the held-back history orders them."""

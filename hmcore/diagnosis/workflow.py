@@ -48,10 +48,10 @@ import numpy as np
 import pandas as pd
 
 from hmcore.case import Case
-from hmcore.diagnosis import decision, refit, screening
-from hmcore.diagnosis.attribution import Score
+from hmcore.diagnosis import dating, decision, refit, screening
+from hmcore.diagnosis.attribution import Score, projector_basis
 from hmcore.diagnosis.extensions import (Candidate, base_values, build_candidates,
-                                         current_skin, extended_space)
+                                         current_skin, dated_productivity, extended_space)
 from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings, Point,
                                           run_lockstep)
 from hmcore.diagnosis.residuals import ObservationSet, analyse_residuals
@@ -71,7 +71,14 @@ def minimum_runs(case: Case, settings: DiagnosisSettings, given: bool) -> int:
     ``settings.kinds`` and one finite difference per global parameter)."""
     dim = len(case.space.parameters)
     n_candidates = len(build_candidates(case.info, case.space, None, settings.kinds))
-    return (1 if given else dim + 1) + n_candidates + dim
+    return (1 if given else dim + 1) + n_candidates + _dated_reserve(case, settings) + dim
+
+
+def _dated_reserve(case: Case, settings: DiagnosisSettings) -> int:
+    """Probe runs of the dated candidates the ranking may add (``productivity_change``)."""
+    if "productivity_change" not in settings.kinds:
+        return 0
+    return min(settings.dated_max, len(case.info.producers))
 
 
 def budget_problem(case: Case, settings: DiagnosisSettings, given: bool,
@@ -83,12 +90,14 @@ def budget_problem(case: Case, settings: DiagnosisSettings, given: bool,
     if settings.budget >= need:
         return None
     dim = len(case.space.parameters)
-    n = need - (1 if given else dim + 1) - dim
+    dated = _dated_reserve(case, settings)
+    n = need - (1 if given else dim + 1) - dim - dated
     start = "1 run of the given parameters" if given else \
         f"{dim + 1} to calibrate from the deck's values"
+    dated_text = f", {dated} for dated candidates" if dated else ""
     return Problem(where, f"{settings.budget} simulator calls cannot cover the minimum of "
-                          f"{need} ({start}, then {n} candidate probes and {dim} finite "
-                          "differences for the ranking)",
+                          f"{need} ({start}, then {n} candidate probes{dated_text} and {dim} "
+                          "finite differences for the ranking)",
                    f"give {where} {need} or more, about {need + 40} to leave room for the "
                    "recalibrations, or search fewer kinds with "
                    f"{'--kinds' if where.startswith('--') else 'kinds'}")
@@ -198,7 +207,7 @@ class Diagnosis:
     def _ranking_reserve(self) -> int:
         """Calls the ranking needs at most: a probe per candidate, a difference per global."""
         return (len(build_candidates(self.case.info, self.case.space, None, self.settings.kinds))
-                + self.coords.dim)
+                + _dated_reserve(self.case, self.settings) + self.coords.dim)
 
     # ------------------------------------------------------------------ simulation
     def _run(self, case: Case, values_list: list[dict[str, float]], step: str,
@@ -369,10 +378,24 @@ class Diagnosis:
         if self.J_global is None:
             self.J_global = screening.global_jacobian(r0, jobs, residuals, self.coords.dim)
         self.held_globals = screening.held_at_bounds(self.J_global, r0, self.u_base)
-        self.probe_runs = {j.candidate.id: run for j, run in zip(jobs, runs) if j.candidate}
         result = screening.screen(self.candidates, jobs, residuals,
                                   [getattr(run.result, "reason", "") for run in runs], r0,
                                   self.J_global, self.held_globals, self.coords.names, s)
+        datings, dated = self._date(result, r0)
+        if dated:  # the dated candidates' probes, then the ranking of them all
+            self.candidates = self.candidates + dated
+            self.union_case = self.case.with_space(extended_space(self.case.space,
+                                                                  self.candidates))
+            more = screening.probe_jobs(self.coords, self.u_base, values0, dated, False,
+                                        s.global_fd_step)
+            jobs, runs = jobs + more, runs + self._run(self.union_case,
+                                                       [j.values for j in more], "dating")
+            residuals = [run.r_fit for run in runs]
+            result = screening.screen(self.candidates, jobs, residuals,
+                                      [getattr(run.result, "reason", "") for run in runs], r0,
+                                      self.J_global, self.held_globals, self.coords.names, s)
+        self.probe_runs = {j.candidate.id: run for j, run in zip(jobs, runs) if j.candidate}
+        result.document["dating"] = [d.to_dict() for d in datings]
         self.scores, self.sensitivity, self.ranking = (result.scores, result.sensitivity,
                                                        result.document)
         self.timings["rank"] = time.perf_counter() - t0
@@ -381,6 +404,34 @@ class Diagnosis:
         self.log(f"ranking: {len(beyond)} of {len(order)} candidates beyond noise "
                  f"({len(self.ranking['screened'])} screened for recalibration); top: {top}")
         return self.ranking
+
+    def _date(self, result: screening.Screening, r0: np.ndarray
+              ) -> tuple[list[dating.Dating], list[Candidate]]:
+        """The date scans of the wells (``productivity_change``), from their well-skin
+        probes, and the dated candidates they justify (:mod:`hmcore.diagnosis.dating`)."""
+        s = self.settings
+        if "productivity_change" not in s.kinds:
+            return [], []
+        idx = self.obs.vector_index("fit")
+        days = self.obs.rows.days.to_numpy(float)[idx]
+        wells = self.obs.rows.well.to_numpy()[idx]
+        Q = projector_basis(self.J_global[:, ~self.held_globals])
+        scans = {}
+        for well in sorted(self.case.info.producers, key=natural_key):
+            j = result.sensitivity.get(f"well_skin:{well}")
+            if j is not None:
+                scans[well] = (j, dating.scan_days(self.case.info.report_days, days,
+                                                   wells == well, s.dating_min_after))
+        n_tests = sum(len(d) for _, d in scans.values())
+        datings = [dating.date_well(w, r0, j, days, Q, tried, s.dating_alpha, n_tests)
+                   for w, (j, tried) in scans.items()]
+        chosen = dating.choose(datings, s.dated_max)
+        if datings:
+            self.log("dating: " + ", ".join(
+                f"{d.well} day {d.day:g} (+{d.gain:.0f} vs {d.threshold:.1f})"
+                for d in sorted(datings, key=lambda d: -d.gain)[:3]))
+        dated = [dated_productivity(self.case.info, d.well, d.day) for d in chosen]
+        return datings, [c for c in dated if c.name not in self.case.space.names]
 
     # ------------------------------------------------------------------ 4 extend
     def extend(self) -> dict:
