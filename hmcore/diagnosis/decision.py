@@ -65,6 +65,57 @@ def heldout_decisive_drop(n_heldout: int, s: DiagnosisSettings) -> float:
     return max(s.heldout_threshold, s.quiet_sd * math.sqrt(2.0 * n_heldout))
 
 
+# ----------------------------------------------------------------------------- the statistic
+def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, ...],
+              base_ssr_fit: float, n_tests: int, s: DiagnosisSettings,
+              dated: set[str] = frozenset()) -> dict | None:
+    """The decision in one statistic per question, for the top recalibrated cause (the first
+    of ``confirmed_ok``, else the best fit): against no extension, the likelihood ratio of the
+    fitted history (the whitened SSR it removes, ``2 log LR`` under the noise model) with its
+    chi-square p-value (1 degree of freedom; 2 for a dated cause, whose date was chosen) and
+    that p-value over the ``n_tests`` candidates (Bonferroni), beside the line ``fit_threshold``;
+    against the runner-up (the next best recalibrated fit, the same number of parameters), the
+    difference of their fitted SSRs, its evidence ratio ``exp(d / 2)``, beside ``tie_band``.
+    None when nothing was recalibrated."""
+    from scipy.stats import chi2
+
+    if not confirmed:
+        return None
+    by_fit = sorted(confirmed, key=lambda k: confirmed[k]["ssr_fit_after"])
+    top = confirmed_ok[0] if confirmed_ok else by_fit[0]
+    lr = float(base_ssr_fit - confirmed[top]["ssr_fit_after"])
+    dof = 2 if top in dated else 1
+    p = float(chi2.sf(max(lr, 0.0), dof))
+    out = {"cause": top,
+           "vs_none": {"lr": lr, "dof": dof, "p": p, "p_family": min(1.0, n_tests * p),
+                       "tests": int(n_tests), "false_alarm": s.false_alarm,
+                       "line": s.fit_threshold, "beyond": bool(lr > s.fit_threshold)},
+           "vs_runner_up": None}
+    runner = next((k for k in by_fit if k != top), None)
+    if runner is not None:
+        d = float(confirmed[runner]["ssr_fit_after"] - confirmed[top]["ssr_fit_after"])
+        out["vs_runner_up"] = {"runner_up": runner, "lr": d,
+                               "evidence_ratio": math.exp(min(d / 2.0, 700.0)),
+                               "line": s.tie_band, "apart": bool(d > s.tie_band)}
+    return out
+
+
+def statistic_text(st: dict | None) -> str:
+    """The statistic in one sentence."""
+    if not st:
+        return "no candidate was recalibrated"
+    v = st["vs_none"]
+    text = (f"{st['cause']}: against no extension, the fitted SSR drops by {v['lr']:.1f} "
+            f"(chi-square {v['dof']} dof: p {v['p']:.2g}, {v['p_family']:.2g} over "
+            f"{v['tests']} candidates; line {v['line']:.1f} at false-alarm rate "
+            f"{v['false_alarm']:g})")
+    r = st["vs_runner_up"]
+    if r:
+        text += (f"; against the runner-up {r['runner_up']}, by {r['lr']:.1f} more (evidence "
+                 f"ratio {r['evidence_ratio']:.3g}; tie band {r['line']:g})")
+    return text
+
+
 # ----------------------------------------------------------------------------- ranked causes
 def order_confirmed(confirmed: dict[str, dict], ids: list[str], tie_band: float) -> list[str]:
     """``ids`` by fitted SSR after recalibration; those within ``tie_band`` of the best fit are
@@ -231,8 +282,10 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
         selected = confirmed_ok[0]
     verdict = _verdict(selected, confirmed_ok, confirmed, ranking, by_id,
                        base_heldout_per_well, n_heldout_measured, s)
-    # no family explains what remains beyond noise (none fits the fitted history beyond noise)
-    found, line, m = (localise(residuals, s.unexplained_alpha) if not confirmed_ok
+    # nothing accepted while the calibrated model misses the data beyond noise: no family
+    # explains it (none fits the fitted history beyond noise, or those that do, the held-back
+    # history vetoes), so the first answer is `unexplained`, localised, not a rejected name
+    found, line, m = (localise(residuals, s.unexplained_alpha) if selected is None
                       else ([], 0.0, 0))
     if found:
         causes.insert(0, unexplained_cause(found, line, m, s.unexplained_alpha))

@@ -143,7 +143,8 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
     b = {**_cause(doc2, second), "evidence": (f"round 2, with {p.first} in the model: "
                                               + _cause(doc2, second)["evidence"])}
     doc["accepted"] = [decision.accepted_cause(a, first_conf, 1), decision.accepted_cause(b, second_conf, 2)]
-    doc["causes"] = [a, b] + [c for c in doc1["causes"] if c["id"] not in (p.first, second)]
+    doc["causes"] = [a, b] + [c for c in doc1["causes"] if c["id"] not in (p.first, second)
+                              and c["kind"] != "unexplained"]  # the pair explains it
     values = dict(second_conf["values"])
     doc["selected"] = {**a, "values": values, "second": {**b, "values": values}}
     doc["gain"] = {**doc1["gain"], "fit_after": pair_sc["E"],

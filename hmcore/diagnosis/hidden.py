@@ -301,7 +301,8 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
 
 SIGNAL_VISIBLE = DiagnosisSettings().chi2_threshold
 """Chi-square of a hidden effect's signal on the fitted history under which a diagnosis cannot
-be expected to name it: the score test's line (:class:`hmcore.diagnosis.DiagnosisSettings`)."""
+be expected to name it: the score test's line of a full search (:class:`DiagnosisSettings`,
+``false_alarm`` over :data:`hmcore.diagnosis.settings.DEFAULT_TESTS` candidates)."""
 
 
 def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=None, *,

@@ -38,11 +38,19 @@ class DiagnosisSettings:
     cannot be trusted (a response that bends, several candidates the globals absorb alike).
     PUNQ-S3, layer 1 x3.6: the globals absorb all but chi2 19 of it, the score test puts it 9th
     (9.5, the leader 25.6), and the four recalibrated candidates fit alike."""
-    chi2_threshold: float = 15.0
-    """A candidate is beyond noise when its score test removes more than this (chi2 units).
-    Pure noise gives chi-square(1) values; in the synthetic controls and on PUNQ-S3's
-    measured history the largest of ~30 candidates was 2-4, so 15 leaves a margin of about
-    four for the imperfect noise model."""
+    false_alarm: float = 0.003
+    """Family-wise false-alarm rate of the noise lines ``chi2_threshold`` and ``fit_threshold``
+    when they are not given: under the noise model the whitened residuals are independent
+    standard normal, so the SSR one more parameter removes from pure noise is chi-square with
+    one degree of freedom, and the line over ``K`` candidates is the chi-square(1) quantile at
+    ``false_alarm / K`` (Bonferroni; :func:`noise_line`). ``K`` is the diagnosis's own count:
+    the candidates of its kinds and its dated ones. 0.003 was set on the synthetic controls and
+    PUNQ-S3's measured history, where the largest of ~30 candidates scored 2-4: over 30
+    candidates the line is chi2 15.1 (the fixed 15 of before), a margin of about four for the
+    imperfect noise model; with ``--kinds well_skin`` (4 candidates) it is 11.3."""
+    chi2_threshold: float | None = None
+    """A candidate is beyond noise when its score test removes more than this (chi2 units);
+    None: derived (:func:`noise_line` of the diagnosis's candidates at ``false_alarm``)."""
     screen_threshold: float = 8.0
     """Candidates whose score test removes at least this much (but maybe less than
     ``chi2_threshold``) are recalibrated too: the score test is linear in the new parameter, and
@@ -50,8 +58,12 @@ class DiagnosisSettings:
     just under the line. Such a candidate ranks above ``none`` only when its recalibration
     lowers the fitted SSR by more than ``fit_threshold``. In the synthetic controls and on
     PUNQ-S3's measured history no candidate reached 5, so the screen costs them nothing."""
-    fit_threshold: float = 15.0
-    """A confirmed extension must lower the fitted SSR by more than this."""
+    fit_threshold: float | None = None
+    """A confirmed extension must lower the fitted SSR by more than this; None: derived, the
+    same line as ``chi2_threshold`` (a likelihood-ratio test of one more parameter)."""
+    derived_lines: tuple[str, ...] = ()
+    """The lines derived from ``false_alarm`` rather than given (set on construction; a
+    diagnosis derives them again for its own count of candidates, :func:`with_lines`)."""
     heldout_threshold: float = 6.0
     """... and the held-back SSR by more than this (and the held-back E must drop). When the
     calibrated model already fits the held-back history within noise (its whitened SSR under
@@ -169,6 +181,12 @@ class DiagnosisSettings:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "kinds", tuple(self.kinds))
+        derived = tuple(self.derived_lines) + tuple(
+            n for n in ("chi2_threshold", "fit_threshold") if getattr(self, n) is None)
+        object.__setattr__(self, "derived_lines", tuple(dict.fromkeys(derived)))
+        for name in self.derived_lines:  # until a diagnosis counts its own candidates
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, noise_line(DEFAULT_TESTS, self.false_alarm))
         object.__setattr__(self, "later_origins", tuple(self.later_origins))
         problems = kinds_problems(self.kinds, "kinds")
         if self.budget is not None and self.budget < 1:
@@ -181,6 +199,9 @@ class DiagnosisSettings:
         if bad:
             problems.append(Problem("later_origins", f"fractions of the record must lie in "
                                     f"(0, 1), got {bad}", "give e.g. (0.875,), or () for none"))
+        if not 0.0 < self.false_alarm < 1.0:
+            problems.append(Problem("false_alarm", f"must lie in (0, 1), got {self.false_alarm}",
+                                    "give a probability such as 0.003"))
         if self.workers < 1:
             problems.append(Problem("workers", f"must be at least 1, got {self.workers}",
                                     "give a positive number of simulations at once"))
@@ -189,6 +210,28 @@ class DiagnosisSettings:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+DEFAULT_TESTS = 30
+"""The candidates a full search of a small field has (the synthetic case: 28 and 2 dated):
+the count the noise lines assume until a diagnosis counts its own."""
+
+
+def noise_line(n_tests: int, false_alarm: float) -> float:
+    """The chi2 a one-parameter extension removes from pure noise with probability at most
+    ``false_alarm`` over ``n_tests`` candidates: the chi-square(1) quantile at
+    ``false_alarm / n_tests`` (Bonferroni)."""
+    from scipy.stats import chi2
+
+    return float(chi2.isf(false_alarm / max(int(n_tests), 1), 1))
+
+
+def with_lines(s: DiagnosisSettings, n_tests: int) -> DiagnosisSettings:
+    """``s`` with its derived lines (``s.derived_lines``) for ``n_tests`` candidates."""
+    if not s.derived_lines:
+        return s
+    line = noise_line(n_tests, s.false_alarm)
+    return dataclasses.replace(s, **{n: line for n in s.derived_lines})
 
 
 def kinds_problems(kinds: Iterable[str], where: str = "--kinds") -> list[Problem]:

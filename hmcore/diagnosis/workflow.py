@@ -55,7 +55,7 @@ from hmcore.diagnosis.extensions import (Candidate, base_values, build_candidate
 from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings, Point,
                                           run_lockstep)
 from hmcore.diagnosis.residuals import ObservationSet, analyse_residuals
-from hmcore.diagnosis.settings import DiagnosisSettings
+from hmcore.diagnosis.settings import DiagnosisSettings, with_lines
 from hmcore.errors import Problem
 from hmcore.evaluation import score_responses
 from hmcore.results import natural_key
@@ -165,7 +165,10 @@ class Diagnosis:
     def __init__(self, case: Case, evaluate_batch: EvaluateBatch,
                  settings: DiagnosisSettings | None = None,
                  log: Callable[[str], None] | None = None):
-        self.settings = settings or DiagnosisSettings()
+        settings = settings or DiagnosisSettings()
+        self.n_tests = (len(build_candidates(case.info, case.space, None, settings.kinds))
+                        + _dated_reserve(case, settings))
+        self.settings = with_lines(settings, self.n_tests)
         self.obs = ObservationSet.from_case(case, self.settings.heldout_fraction)
         if case.history_end_days is None:  # score E on the same split as the residuals
             case = dataclasses.replace(case, history_end_days=self.obs.history_end_days)
@@ -787,6 +790,9 @@ class Diagnosis:
             "accepted": ([decision.accepted_cause(selected, self.confirmed[d.selected], 1)]
                          if selected else []),
             "fits_beyond_noise": list(d.fits),
+            "statistic": decision.statistic(
+                self.confirmed, d.fits, self.base.ssr_fit, self.n_tests, self.settings,
+                {c.id for c in self.candidates if c.details.get("start_day") is not None}),
             "verdict": d.verdict,
             "heldout_within_noise": d.heldout_quiet,
             "gain": d.gain,
