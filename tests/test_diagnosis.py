@@ -824,7 +824,7 @@ def test_the_held_back_history_has_the_last_word_in_the_ranking(tmp_path):
     assert doc["selected"] is None and doc["causes"][0]["kind"] == "unexplained"
     assert doc["causes"][0]["wells"], doc["causes"][0]["description"]  # where it misses
     assert doc["causes"][1]["id"] == best_fit
-    assert doc["verdict"].startswith("unexplained: ") and f"rejected {best_fit}" in doc["verdict"]
+    assert doc["verdict"].startswith("unexplained: ") and f"Rejected {best_fit}" in doc["verdict"]
 
 
 def test_judge_counts_the_whitened_held_back_misfit_only_where_the_truth_cannot_lower_e():
