@@ -342,6 +342,7 @@ def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[
             out.extend(_rewrite_compdat(block, skins, file).lines if skins else block.lines)
             active = [m for m in state["pimults"] if m.start_day is None or m in state["dated"]]
             out.append(_wpimult_block(block, active, state["pi_applied"]))
+            state["completed"].update(r[0].strip("'\"") for r in records(block.body) if r)
         elif (block.keyword in ("DATES", "TSTEP") and state["section"] == "SCHEDULE"
               and any(m.start_day is not None for m in state["pimults"])):
             out.append(_dated_steps(block, info, state))
@@ -389,7 +390,8 @@ def _wpimult_block(compdat: Block, pimults: list[PiMultiplier], applied: set) ->
 def _dated_steps(block: Block, info: DeckInfo, state: dict) -> str:
     """A DATES or TSTEP block, counted in report steps (``state["step"]``), split after the
     step that reaches a pending dated productivity multiplier's day, with its WPIMULT there:
-    one whole-well record per well (the connections defined so far, once)."""
+    one whole-well record per well completed so far (its connections defined so far, once; a
+    well completed later gets the factor after its COMPDAT)."""
     if block.keyword == "DATES":
         units = [" " + " ".join(expand_repeats(r)) + " /\n" for r in records(block.body)]
     else:
@@ -417,11 +419,12 @@ def _dated_steps(block: Block, info: DeckInfo, state: dict) -> str:
             for m in due:
                 state["dated"].append(m)
                 for well in m.wells:
-                    if well in info.wells:
+                    if any(fnmatch.fnmatchcase(well, name) for name in state["completed"]):
                         state["pi_applied"].add(well)
                         lines.append(f" '{well}' {m.factor:.10g} /\n")
-            pieces.append(f"-- productivity multipliers from day {day:g} added by hmflow\n"
-                          "WPIMULT\n" + "".join(lines) + "/\n\n")
+            if lines:
+                pieces.append(f"-- productivity multipliers from day {day:g} added by hmflow\n"
+                              "WPIMULT\n" + "".join(lines) + "/\n\n")
     if len(pieces) == 0:
         return "".join(block.lines)
     flush()
@@ -457,7 +460,7 @@ def render_deck(info: DeckInfo, edits: list[Edit]) -> str:
              "items": [e for e in edits if isinstance(e, ItemMultiply)],
              "tables": [e for e in edits if isinstance(e, TableTransform)],
              "pimults": [e for e in edits if isinstance(e, PiMultiplier)], "pi_applied": set(),
-             "step": 0, "dated": []}
+             "step": 0, "dated": [], "completed": set()}
     text = _render_file(info.path, info, mults, skins, state)
     late = [m for m in state["pimults"] if m.start_day is not None and m not in state["dated"]]
     if late:
