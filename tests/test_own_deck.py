@@ -432,6 +432,40 @@ def test_a_dated_wpimult_changes_the_run_only_from_its_day(tmp_path):
         Parameter(name="s", kind="skin", low=0.0, high=5.0, start_day=100.0)
 
 
+def test_a_dated_wpimult_waits_for_a_well_completed_later(tmp_path):
+    """PROD4 completed after the change's day: the WPIMULT at that day names only the wells
+    completed by then (OPM refuses an unknown connection set), and PROD4 gets the factor
+    after its own COMPDAT; the written deck parses (no simulation)."""
+    pytest.importorskip("opm.io")
+    import re
+
+    from hmcore.deck import prepare_run_deck
+    from hmcore.deck_info import DeckInfo
+    from hmcore.diagnosis.hidden import synthetic_deck_info
+    from hmcore.parameters import Parameter, ParameterSpace
+
+    base = synthetic_deck_info(0, tmp_path / "base").path.read_text()
+    prod4 = "".join(re.findall(r"^ 'PROD4' 12 17 .*\n", base, flags=re.M))
+    assert prod4.count("\n") == 4
+    late = base.replace(prod4, "").replace(" 1 'MAR' 2020 /\n/\n", " 1 'MAR' 2020 /\n/\n\n"
+                                           "COMPDAT\n" + prod4 + "/\n", 1)
+    (tmp_path / "late").mkdir()
+    (tmp_path / "late" / "LATE.DATA").write_text(late)
+    info = DeckInfo.inspect(tmp_path / "late" / "LATE.DATA")
+    space = ParameterSpace(parameters=tuple(
+        Parameter(name=f"pi_{w}", kind="wpimult", wells=(w,), low=0.1, high=10.0,
+                  start_day=10.0) for w in ("PROD1", "PROD4")))
+    deck = prepare_run_deck(info.path, {"pi_PROD1": 0.5, "pi_PROD4": 0.25}, space,
+                            tmp_path / "run", info)
+    text = deck.read_text()
+    at_day = text.index("-- productivity multipliers from day 31 added by hmflow")
+    block = text[at_day:text.index("/\n", text.index("WPIMULT", at_day))]
+    assert "'PROD1' 0.5" in block and "PROD4" not in block
+    after = text[text.index("COMPDAT", at_day):]  # PROD4's own COMPDAT, then its factor
+    assert re.search(r"WPIMULT\n 'PROD4' 0.25 12 17 1 /", after), after[:600]
+    DeckInfo.inspect(deck)  # OPM parses what was written
+
+
 @pytest.mark.opm
 def test_init_imports_a_summary_file(tmp_path):
     from hmcore.deck import prepare_run_deck
