@@ -434,6 +434,7 @@ def test_diagnosis_orchestration_on_a_linear_simulator(tmp_path, hidden):
     else:
         assert st["cause"] == hidden and st["vs_none"]["beyond"], st
         assert st["vs_none"]["p_family"] < 0.003 and st["vs_none"]["dof"] == 1
+        assert st["vs_none"]["share"] > 0.5, st  # the whole cause: most of the excess misfit
         assert "The statistic" in (tmp_path / "out" / "report.md").read_text()
         assert doc["causes"][0]["id"] == hidden
         assert doc["selected"]["id"] == hidden
@@ -558,21 +559,26 @@ def test_a_productivity_change_from_a_date_is_named_with_its_start(tmp_path):
     assert control["causes"][0]["kind"] == "none"
 
 
-@pytest.mark.parametrize("strength", [1.3, 1.6])
+@pytest.mark.parametrize("strength", [1.3, 1.6, 0.5])
 def test_an_effect_of_no_family_is_unexplained_and_localised(tmp_path, strength):
     """A hidden change no candidate family makes (here a parameter named like none of them,
     signature, acting over the whole record): at x1.3 no candidate fits it beyond noise; at
     x1.6 a well skin fits part of it beyond noise but the held-back history vetoes it. Either
     way nothing is accepted and the answer is `unexplained`, localised at the wells and
     responses where the calibrated model misses in the fitted window - not a bare `none`, not
-    the rejected skin. (Known limit, 2026-11-26: at x0.5 a well skin and a region at PROD4 fit
-    part of it and the held-back history confirms both; issue 18.)"""
+    the rejected skin. Known limit (issue 18): at x0.5 a well skin and a region at PROD4 fit
+    part of it and the held-back history confirms both; the verdict then says each removes
+    only a small share of the misfit beyond noise (21 % for the skin)."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
 
     pvt = Parameter(name="pvt_shift", kind="multiply", keywords=("NTG",), low=0.5, high=2.0)
     case, sim, _ = _linear_case(tmp_path, pvt, strength)
     doc = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(plots=False),
                    out_dir=tmp_path / "out")
+    if strength == 0.5:  # the known limit: named, but said to be partial
+        assert doc["accepted"] and doc["statistic"]["vs_none"]["share"] < 0.5, doc["statistic"]
+        assert "of the fitted misfit beyond noise: something else acts too" in doc["verdict"]
+        return
     first = doc["causes"][0]
     assert first["kind"] == "unexplained" and doc["selected"] is None, doc["verdict"]
     touched = [w for k, w in enumerate(sim.wells)

@@ -68,7 +68,7 @@ def heldout_decisive_drop(n_heldout: int, s: DiagnosisSettings) -> float:
 # ----------------------------------------------------------------------------- the statistic
 def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, ...],
               base_ssr_fit: float, n_tests: int, s: DiagnosisSettings,
-              dated: set[str] = frozenset()) -> dict | None:
+              dated: set[str] = frozenset(), n_noise: int | None = None) -> dict | None:
     """The decision in one statistic per question, for the top recalibrated cause (the first
     of ``confirmed_ok``, else the best fit): against no extension, the likelihood ratio of the
     fitted history (the whitened SSR it removes, ``2 log LR`` under the noise model) with its
@@ -76,7 +76,11 @@ def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, .
     that p-value over the ``n_tests`` candidates (Bonferroni), beside the line ``fit_threshold``;
     against the runner-up (the next best recalibrated fit, the same number of parameters), the
     difference of their fitted SSRs, its evidence ratio ``exp(d / 2)``, beside ``tie_band``.
-    None when nothing was recalibrated."""
+    With ``n_noise`` (the fitted points that are measurement noise: the SSR a model right to
+    the noise leaves, on average), ``share``: the part of the misfit beyond noise
+    (``base_ssr_fit - n_noise``) the cause removes - near 1 for the whole cause, small for a
+    candidate that only catches a projection of something no family makes. None when nothing
+    was recalibrated."""
     from scipy.stats import chi2
 
     if not confirmed:
@@ -86,8 +90,11 @@ def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, .
     lr = float(base_ssr_fit - confirmed[top]["ssr_fit_after"])
     dof = 2 if top in dated else 1
     p = float(chi2.sf(max(lr, 0.0), dof))
+    excess = None if n_noise is None else float(base_ssr_fit - n_noise)
+    share = (None if excess is None or excess <= 0 else float(min(max(lr, 0.0) / excess, 1.0)))
     out = {"cause": top,
            "vs_none": {"lr": lr, "dof": dof, "p": p, "p_family": min(1.0, n_tests * p),
+                       "excess": excess, "share": share,
                        "tests": int(n_tests), "false_alarm": s.false_alarm,
                        "line": s.fit_threshold, "beyond": bool(lr > s.fit_threshold)},
            "vs_runner_up": None}
@@ -109,6 +116,9 @@ def statistic_text(st: dict | None) -> str:
             f"(chi-square {v['dof']} dof: p {v['p']:.2g}, {v['p_family']:.2g} over "
             f"{v['tests']} candidates; line {v['line']:.1f} at false-alarm rate "
             f"{v['false_alarm']:g})")
+    if v.get("share") is not None:
+        text += (f", {100 * v['share']:.0f} % of the misfit beyond noise (fitted SSR "
+                 f"{v['excess']:.0f} above its noise expectation)")
     r = st["vs_runner_up"]
     if r:
         text += (f"; against the runner-up {r['runner_up']}, by {r['lr']:.1f} more (evidence "

@@ -61,6 +61,10 @@ class DiagnosisSettings:
     fit_threshold: float | None = None
     """A confirmed extension must lower the fitted SSR by more than this; None: derived, the
     same line as ``chi2_threshold`` (a likelihood-ratio test of one more parameter)."""
+    partial_share: float = 0.5
+    """The verdict says a selected cause is partial when it removes less than this share of
+    the fitted misfit beyond noise (the calibrated model's SSR less its noise expectation; the
+    decision is not changed: a partial fault is caught that way too)."""
     derived_lines: tuple[str, ...] = ()
     """The lines derived from ``false_alarm`` rather than given (set on construction; a
     diagnosis derives them again for its own count of candidates, :func:`with_lines`)."""

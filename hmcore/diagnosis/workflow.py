@@ -792,7 +792,8 @@ class Diagnosis:
             "fits_beyond_noise": list(d.fits),
             "statistic": decision.statistic(
                 self.confirmed, d.fits, self.base.ssr_fit, self.n_tests, self.settings,
-                {c.id for c in self.candidates if c.details.get("start_day") is not None}),
+                {c.id for c in self.candidates if c.details.get("start_day") is not None},
+                self.obs.n_noise("fit")),
             "verdict": d.verdict,
             "heldout_within_noise": d.heldout_quiet,
             "gain": d.gain,
@@ -805,6 +806,13 @@ class Diagnosis:
             "cost": {"simulations": self.n_runs, "sim_time_s": self.sim_time_s,
                      "wall_time_s": time.perf_counter() - self.started, "steps_s": self.timings},
         }
+        st = self.document["statistic"]
+        share = st and st["vs_none"]["share"]
+        if selected and st["cause"] == d.selected and share is not None and \
+                share < self.settings.partial_share:
+            self.document["verdict"] += (
+                f" ({d.selected} removes only {100 * share:.0f} % of the fitted misfit beyond "
+                "noise: something else acts too)")
         return self.document
 
     # ------------------------------------------------------------------ 7 report
