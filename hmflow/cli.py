@@ -855,7 +855,8 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
                                             "drawn by --seed: a library kind, or a generator "
                                             "of effects beyond the library (partial_fault, "
                                             "offcentre_region, relperm_endpoint, two_kinds, "
-                                            "contact); omit: a control, nothing hidden"),
+                                            "contact, dated_productivity); omit: a control, "
+                                            "nothing hidden"),
          seed: int = typer.Option(0, "--seed", help="Draws the effect, its strength and the "
                                   "noise (and, for the synthetic case, the fields)"),
          candidate: Optional[str] = typer.Option(None, "--candidate", help="Hide this library "
