@@ -281,6 +281,6 @@ def test_bench_and_diagnose_show_a_progress_bar(tmp_path, monkeypatch, restore_e
     assert shown == [{"done": True}]
     assert re.search(r"simulations 5 .*step ranking", out.output), out.output
     out = CliRunner().invoke(app, ["diagnose", "--storage", str(storage), "--campaign", "d2",
-                                   "--budget", "40", "--workers", "1"], env={"COLUMNS": "150"})
+                                   "--budget", "45", "--workers", "1"], env={"COLUMNS": "150"})
     assert out.exit_code == 0, out.output
-    assert re.search(r"simulations \(budget 40\) .*5/40 .*step ranking", out.output), out.output
+    assert re.search(r"simulations \(budget 45\) .*5/45 .*step ranking", out.output), out.output
