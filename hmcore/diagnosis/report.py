@@ -154,8 +154,9 @@ def markdown_report(doc: dict, level: int = 1) -> str:
              "Selected extension: " + (f"**{sel['kind']}** ({sel['id']}) - {sel['description']}"
                                        if sel else "**none**"), "",
              ] + _accepted(doc, h2) + _windows(doc, h2) + [
-             f"{h2} Gain", "", gain_table(doc), "", f"{h2} The statistic", "",
-             statistic_text(doc.get("statistic")) + ".", "", f"{h2} Ranked causes", "",
+             f"{h2} Gain", "", gain_table(doc), ""] + (
+             [f"{h2} The statistic", "", statistic_text(doc["statistic"]) + ".", ""]
+             if "statistic" in doc else []) + [f"{h2} Ranked causes", "",
              ranking_table(doc), ""] + _unexplained(doc, h2) + [
              f"{h2} Recalibrated candidates", "",
              "Before: fitted SSR " + _f(doc["gain"]["ssr_fit_before"], 6) + ", held-back SSR "
