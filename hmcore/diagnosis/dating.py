@@ -11,7 +11,8 @@ ranking (:mod:`hmcore.diagnosis.screening`) dates it without another run: for ea
 The decision comes from the noise model and the data counts, not a tuned number: with whitened
 residuals (standard normal under the noise model) a date chosen among ``K`` scanned ones adds
 one free parameter picked from ``K``; the gain is kept when it exceeds the chi-square(1)
-quantile at ``alpha / K`` (a Bonferroni bound over the dates, :func:`date_threshold`; ``K``
+quantile at ``alpha / K`` (a Bonferroni bound over the dates, the same as the screening's
+:func:`hmcore.diagnosis.settings.noise_line`; ``K``
 counts the dates scanned over every well, so that the family-wise false-alarm rate of a
 diagnosis is ``alpha``). A kept
 date becomes a candidate (:func:`hmcore.diagnosis.extensions.dated_productivity`) that gets its
@@ -23,9 +24,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2 as chi2_dist
-
 from hmcore.diagnosis.attribution import score_test
+from hmcore.diagnosis.settings import noise_line
 
 
 @dataclass(frozen=True)
@@ -54,12 +54,6 @@ class Dating:
                 "chi2_undated": self.chi2_undated, "gain": self.gain,
                 "threshold": self.threshold, "dates_scanned": self.dates_scanned,
                 "dated": self.dated}
-
-
-def date_threshold(n_dates: int, alpha: float) -> float:
-    """The chi-square gain a date scan of ``n_dates`` dates reaches by noise with probability
-    at most ``alpha``: the chi-square(1) quantile at ``alpha / n_dates`` (Bonferroni)."""
-    return float(chi2_dist.isf(alpha / max(n_dates, 1), 1))
 
 
 def scan_days(report_days: tuple[float, ...] | list[float], days: np.ndarray,
@@ -95,7 +89,7 @@ def date_well(well: str, r0: np.ndarray, j: np.ndarray, days: np.ndarray, Q: np.
     if not candidates:
         best = undated
     return Dating(well, best_day, float(best), float(undated),
-                  date_threshold(n_tests or len(candidates), alpha), len(candidates))
+                  noise_line(n_tests or len(candidates), alpha), len(candidates))
 
 
 def choose(datings: list[Dating], n_max: int) -> list[Dating]:

@@ -107,7 +107,7 @@ class DiagnosisSettings:
     dating_alpha: float = 0.05
     """A start date is kept when its chi2 gain over the undated change reaches what noise
     makes with this probability over the dates scanned (Bonferroni, chi-square with 1 degree
-    of freedom: :func:`hmcore.diagnosis.dating.date_threshold`)."""
+    of freedom: :func:`noise_line` over the dates)."""
     dating_min_after: int = 6
     """A date is scanned when the well has at least this many fitted points after it."""
     tie_band: float = 10.0
