@@ -115,6 +115,21 @@ def per_run(calls: pd.DataFrame, floor: float, centre: float, workers: int = 1) 
     return pd.DataFrame(rows)
 
 
+def speedup(runs_one: pd.DataFrame, runs_many: pd.DataFrame) -> pd.DataFrame:
+    """The same (method, seed) campaigns run with 1 worker and with W: one row per pair that is
+    in both, with the wall time of each, the speed-up (1-worker wall / W-worker wall), the mean
+    simulator time per call of each (W runs at once on the same cores each take longer) and
+    the overhead of each (:func:`per_run`). ``runs_*``: :func:`per_run` tables."""
+    keys = ["method", "seed"]
+    cols = keys + ["calls", "wall_min", "sim_min", "overhead"]
+    both = runs_one[cols].merge(runs_many[cols], on=keys, suffixes=("_1", "_w"))
+    both["speedup"] = both["wall_min_1"] / both["wall_min_w"]
+    for side in ("1", "w"):
+        both[f"sim_s_per_call_{side}"] = 60.0 * both[f"sim_min_{side}"] / both[f"calls_{side}"]
+    return both[keys + ["calls_1", "calls_w", "wall_min_1", "wall_min_w", "speedup",
+                        "sim_s_per_call_1", "sim_s_per_call_w", "overhead_1", "overhead_w"]]
+
+
 def summary(runs: pd.DataFrame) -> pd.DataFrame:
     """One row per method: medians across seeds (see the module docstring)."""
     out = []

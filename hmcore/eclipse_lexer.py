@@ -14,6 +14,10 @@ _KEYWORD_RE = re.compile(r"^([A-Z][A-Z0-9_+-]{0,7})(?:\s|$)")
 
 def strip_comment(line: str) -> str:
     """The part of ``line`` before a ``--`` comment that is not inside quotes."""
+    if "--" not in line:  # most data lines: nothing to scan
+        return line
+    if "'" not in line and '"' not in line:
+        return line[:line.index("--")]
     quote = None
     for i, ch in enumerate(line):
         if quote:

@@ -81,28 +81,36 @@ class Exclusion(str, Enum):
     NO_RATE_SIMULATED = "no_rate_simulated"  # simulated denominator 0: no simulated ratio
 
 
-def ratio_exclusions(pairs: pd.DataFrame) -> pd.Series:
-    """Per pair: the :class:`Exclusion` value of a GOR / WCT record left out, else None."""
-    reason = pd.Series([None] * len(pairs), index=pairs.index, dtype=object)
+def ratio_exclusions(pairs: pd.DataFrame) -> np.ndarray:
+    """Per pair (in order): the :class:`Exclusion` value of a GOR / WCT record left out, else
+    None. The denominator's rates are the pairs of its parts at the same well and day (the
+    first such pair); a part with no observed value there leaves it to the ``flowing`` flag."""
+    reason = np.full(len(pairs), None, dtype=object)
+    quantity = pairs["quantity"].astype(str).to_numpy(object)
+    well = pairs["well"].astype(str).to_numpy(object)
+    days = pairs["days"].to_numpy(float)
+    y, yhat = pairs["observed"].to_numpy(float), pairs["simulated"].to_numpy(float)
+    flowing = pairs["flowing"].astype(bool).to_numpy()
+    first: dict[tuple, int] = {}  # (quantity, well, day) -> its first pair
+    for i in range(len(pairs)):
+        first.setdefault((quantity[i], well[i], days[i]), i)
     for q, parts in RATIO_DENOMINATORS.items():
-        rows = pairs.quantity == q
-        if not rows.any():
-            continue
-        sub = pairs.loc[rows, ["well", "days", "flowing"]]
-        obs_den = pd.Series(0.0, index=sub.index)
-        sim_den = pd.Series(0.0, index=sub.index)
-        known = pd.Series(True, index=sub.index)
-        for part in parts:
-            rate = pairs[pairs.quantity == part].drop_duplicates(["well", "days"])
-            m = sub.merge(rate[["well", "days", "observed", "simulated"]], on=["well", "days"],
-                          how="left").set_index(sub.index)
-            known &= m["observed"].notna()  # all its rates observed; else the flowing flag
-            obs_den += m["observed"].fillna(0.0)
-            sim_den += m["simulated"].fillna(0.0)
-        shut = np.where(known, obs_den <= 0, ~sub["flowing"].astype(bool))
-        no_sim = known.to_numpy() & (sim_den <= 0).to_numpy() & ~shut
-        reason.loc[sub.index[shut]] = Exclusion.SHUT_IN_OBSERVED.value
-        reason.loc[sub.index[no_sim]] = Exclusion.NO_RATE_SIMULATED.value
+        for i in np.flatnonzero(quantity == q):
+            obs_den = sim_den = 0.0
+            known = True  # all its rates observed; else the flowing flag
+            for part in parts:
+                j = first.get((part, well[i], days[i]))
+                if j is None or np.isnan(y[j]):
+                    known = False
+                else:
+                    obs_den += y[j]
+                if j is not None and not np.isnan(yhat[j]):
+                    sim_den += yhat[j]
+            shut = obs_den <= 0 if known else not flowing[i]
+            if shut:
+                reason[i] = Exclusion.SHUT_IN_OBSERVED.value
+            elif known and sim_den <= 0:
+                reason[i] = Exclusion.NO_RATE_SIMULATED.value
     return reason
 
 
@@ -114,25 +122,31 @@ def compute_metrics(pairs: pd.DataFrame) -> dict:
     wells: dict[str, dict] = {}
     excluded: dict[str, dict[str, dict[str, int]]] = {}
     reasons = ratio_exclusions(pairs)
+    # plain arrays: the loops below run per category and well on every simulator call
+    quantity = pairs["quantity"].astype(str).to_numpy(object)
+    well_of = pairs["well"].astype(str).to_numpy(object)
+    y, yhat = pairs["observed"].to_numpy(float), pairs["simulated"].to_numpy(float)
+    has_reason = reasons != None  # noqa: E711 (element-wise)
     for cat, q in CATEGORIES.items():
-        rows = pairs.quantity == q
+        rows = quantity == q
         if cat in OPTIONAL and not rows.any():
             continue  # injection rates: only for a history that has them
-        left_out = rows & reasons.notna()
-        sub = pairs[rows & ~left_out]
-        categories[cat] = score(sub["observed"].to_numpy(), sub["simulated"].to_numpy())
+        left_out = rows & has_reason
+        used = rows & ~left_out
+        categories[cat] = score(y[used], yhat[used])
         if cat in DIAGNOSTIC:
             categories[cat]["n_excluded"] = int(left_out.sum())
-            counts = pairs[left_out].assign(reason=reasons[left_out]).groupby(["well", "reason"]).size()
             excluded[cat] = {}
-            for (well, why), n in counts.items():
-                excluded[cat].setdefault(str(well), {})[str(why)] = int(n)
-        for well, g in pairs[rows].groupby("well"):
-            used = g[~left_out[g.index]]
-            s = score(used["observed"].to_numpy(), used["simulated"].to_numpy())
+            for well in sorted(set(well_of[left_out])):
+                mine = left_out & (well_of == well)
+                excluded[cat][well] = {str(why): int(np.sum(reasons[mine] == why))
+                                       for why in sorted(set(reasons[mine]))}
+        for well in sorted(set(well_of[rows])):
+            mine = rows & (well_of == well)
+            s = score(y[mine & ~left_out], yhat[mine & ~left_out])
             if cat in DIAGNOSTIC:
-                s["n_excluded"] = int(left_out[g.index].sum())
-            wells.setdefault(str(well), {})[cat] = s
+                s["n_excluded"] = int((mine & left_out).sum())
+            wells.setdefault(well, {})[cat] = s
     macro = {k: _nanmean([categories[c][k] for c in PRIMARY if c in categories])
              for k in ("nmse", "r2")}
     macro["cmatch"] = cmatch(macro["nmse"]) if math.isfinite(macro["nmse"]) else float("nan")

@@ -115,3 +115,26 @@ def test_summary_counts_levels_and_gap_from_the_calls():
     assert table["reached_1.1x"] == 1 and np.isinf(table["calls_to_1.1x"])  # median of 4, inf
     assert table["calls_to_1.5x"] == 2.0 and table["reached_1.5x"] == 2
     assert np.isnan(first["gap_closed_25"])  # fewer calls than the mark: no value
+
+
+def test_speedup_pairs_the_same_campaigns_of_two_benchmarks():
+    """1 worker and 2 workers, the same method and seed: the speed-up is the wall-time ratio;
+    a campaign only one benchmark ran has no row."""
+    from hmcore.benchmark import speedup
+
+    def runs(workers: int, seeds: list[int]) -> pd.DataFrame:
+        rows = []
+        for seed in seeds:
+            for call in range(1, 5):  # 4 calls of 10 s, W at a time, 1 s apart
+                start = 1000.0 + (call - 1) // workers * 11.0
+                rows.append({"method": "m", "seed": seed, "call": call, "status": "COMPLETE",
+                             "E": 2.0 / call, "penalty": 0.0, "wall_time_s": 10.0,
+                             "sim_time_s": 10.0 + workers, "finished_at": start + 10.0})
+        return per_run(pd.DataFrame(rows), 1.0, 3.0, workers)
+
+    table = speedup(runs(1, [0, 1]), runs(2, [0]))
+    assert table[["method", "seed"]].values.tolist() == [["m", 0]]
+    row = table.iloc[0]
+    assert row["wall_min_1"] * 60 == pytest.approx(43.0) and row["wall_min_w"] * 60 == pytest.approx(21.0)
+    assert row["speedup"] == pytest.approx(43.0 / 21.0)
+    assert row["sim_s_per_call_1"] == pytest.approx(11.0) and row["sim_s_per_call_w"] == pytest.approx(12.0)

@@ -317,3 +317,32 @@ def test_a_deck_with_absolute_includes_can_be_a_base_deck(tmp_path, base_run_dec
     assert set(compdat_skins(run).values()) == {2.0}
     assert sorted(Path(p).name for p in _include_paths(run.read_text())) == ["PUNQS3.GEO",
                                                                              "PUNQS3.PRP"]
+
+
+def _scan_comment(line: str) -> str:
+    """The rule, scanned character by character: a ``--`` outside quotes starts a comment."""
+    quote = None
+    for i, ch in enumerate(line):
+        if quote:
+            quote = None if ch == quote else quote
+        elif ch in "'\"":
+            quote = ch
+        elif line.startswith("--", i):
+            return line[:i]
+    return line
+
+
+def test_strip_comment_keeps_quoted_dashes_and_cuts_the_first_comment():
+    from hypothesis import given, settings, strategies as st
+
+    from hmcore.eclipse_lexer import strip_comment
+
+    assert strip_comment("'PRO--1' 1 1 / -- a well") == "'PRO--1' 1 1 / "
+    assert strip_comment("2* 0.5 --") == "2* 0.5 "
+
+    @settings(max_examples=400, deadline=None)
+    @given(st.text(alphabet="ab -'\"/1*", max_size=40))
+    def agrees(line):
+        assert strip_comment(line) == _scan_comment(line)
+
+    agrees()
