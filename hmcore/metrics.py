@@ -84,9 +84,12 @@ class Exclusion(str, Enum):
 def ratio_exclusions(pairs: pd.DataFrame) -> np.ndarray:
     """Per pair (in order): the :class:`Exclusion` value of a GOR / WCT record left out, else
     None. The denominator's rates are the pairs of its parts at the same well and day (the
-    first such pair); a part with no observed value there leaves it to the ``flowing`` flag."""
+    first such pair); a part with no observed value there leaves it to the ``flowing`` flag.
+    ``pairs`` as :func:`hmcore.alignment.align` makes them (string wells, finite days)."""
     reason = np.full(len(pairs), None, dtype=object)
     quantity = pairs["quantity"].astype(str).to_numpy(object)
+    if not np.isin(quantity, list(RATIO_DENOMINATORS)).any():
+        return reason
     well = pairs["well"].astype(str).to_numpy(object)
     days = pairs["days"].to_numpy(float)
     y, yhat = pairs["observed"].to_numpy(float), pairs["simulated"].to_numpy(float)
@@ -116,8 +119,9 @@ def ratio_exclusions(pairs: pd.DataFrame) -> np.ndarray:
 
 def compute_metrics(pairs: pd.DataFrame) -> dict:
     """``{macro, categories, wells, excluded}`` from aligned pairs (quantity, well, days,
-    observed, simulated, flowing); ``excluded[cat][well][reason]`` counts the GOR / WCT
-    records left out (each category's and well's score also carries ``n_excluded``)."""
+    observed, simulated, flowing: as :func:`hmcore.alignment.align` makes them, string wells,
+    finite days); ``excluded[cat][well][reason]`` counts the GOR / WCT records left out (each
+    category's and well's score also carries ``n_excluded``); wells in sorted order."""
     categories = {}
     wells: dict[str, dict] = {}
     excluded: dict[str, dict[str, dict[str, int]]] = {}

@@ -129,7 +129,7 @@ def test_speedup_pairs_the_same_campaigns_of_two_benchmarks():
                 start = 1000.0 + (call - 1) // workers * 11.0
                 rows.append({"method": "m", "seed": seed, "call": call, "status": "COMPLETE",
                              "E": 2.0 / call, "penalty": 0.0, "wall_time_s": 10.0,
-                             "sim_time_s": 10.0 + workers, "finished_at": start + 10.0})
+                             "sim_time_s": 9.0 + 0.5 * workers, "finished_at": start + 10.0})
         return per_run(pd.DataFrame(rows), 1.0, 3.0, workers)
 
     table = speedup(runs(1, [0, 1]), runs(2, [0]))
@@ -137,4 +137,8 @@ def test_speedup_pairs_the_same_campaigns_of_two_benchmarks():
     row = table.iloc[0]
     assert row["wall_min_1"] * 60 == pytest.approx(43.0) and row["wall_min_w"] * 60 == pytest.approx(21.0)
     assert row["speedup"] == pytest.approx(43.0 / 21.0)
-    assert row["sim_s_per_call_1"] == pytest.approx(11.0) and row["sim_s_per_call_w"] == pytest.approx(12.0)
+    assert row["sim_s_per_call_1"] == pytest.approx(9.5) and row["sim_s_per_call_w"] == pytest.approx(10.0)
+    assert (row["calls_1"], row["calls_w"]) == (4, 4)
+    # overhead: wall time over the simulator time per worker, less 1
+    assert row["overhead_1"] == pytest.approx(43.0 / 38.0 - 1)
+    assert row["overhead_w"] == pytest.approx(21.0 / 20.0 - 1)

@@ -401,3 +401,27 @@ def test_shut_in_records_are_left_out_of_gor_and_water_cut_and_counted():
     ratios_only = obs[obs.quantity.isin(["WGOR", "WWCT"])]
     met3 = compute_metrics(align(ratios_only, sim, 1.0).pairs)
     assert met3["categories"]["gor"]["n_excluded"] == 1
+
+
+def test_ratio_exclusions_take_the_first_rate_of_a_day_and_the_flag_without_one():
+    """Hand-built pairs: a day whose oil rate is reported twice (0 first, then 5) takes the
+    first (shut in); a water cut whose water rate was not observed falls back to the
+    ``flowing`` flag; wells are listed in sorted order in ``wells`` and ``excluded``."""
+    rows = [  # well, quantity, days, observed, simulated, flowing
+        ("PRO-2", "WOPR", 10.0, 0.0, 1.0, True), ("PRO-2", "WOPR", 10.0, 5.0, 5.0, True),
+        ("PRO-2", "WGOR", 10.0, 90.0, 80.0, True), ("PRO-2", "WOPR", 20.0, 4.0, 0.0, True),
+        ("PRO-2", "WGOR", 20.0, 90.0, 80.0, True),
+        ("PRO-10", "WOPR", 10.0, 5.0, 5.0, False), ("PRO-10", "WWPR", 10.0, np.nan, 1.0, False),
+        ("PRO-10", "WWCT", 10.0, 0.2, 0.1, False), ("PRO-10", "WOPR", 20.0, 5.0, 5.0, True),
+        ("PRO-10", "WWPR", 20.0, 1.0, 1.0, True), ("PRO-10", "WWCT", 20.0, 0.2, 0.1, True)]
+    pairs = pd.DataFrame(rows, columns=["well", "quantity", "days", "observed", "simulated",
+                                        "flowing"])
+    pairs["sim_days"], pairs["sigma"], pairs["derived"] = pairs["days"], np.nan, False
+    met = compute_metrics(pairs)
+    assert met["excluded"] == {
+        "gor": {"PRO-2": {"no_rate_simulated": 1, "shut_in_observed": 1}},
+        "wct": {"PRO-10": {"shut_in_observed": 1}}}
+    assert list(met["wells"]) == ["PRO-10", "PRO-2"]  # sorted as text, as pandas groups them
+    assert met["categories"]["gor"]["n"] == 0 and met["categories"]["wct"]["n"] == 1
+    assert met["wells"]["PRO-10"]["wct"] == {**met["wells"]["PRO-10"]["wct"], "n": 1,
+                                             "n_excluded": 1}
