@@ -7,8 +7,10 @@ Writes ``OUT/<name>/``: the files of the latest ``<name>/benchmark/vNNNN`` (summ
 summary.parquet, runs.parquet, calls.parquet, best_so_far.png, references.json) and
 ``journals.tar.gz``: ``campaign.json`` and every ``evaluations/*.json`` of the benchmark, its
 reference campaign and every campaign of the table, without the residual vectors (large, and
-rebuilt by rescoring). Unpacked into a store (``tar -xzf ... -C hmflow-storage``), the same
-``hmflow bench`` command continues the benchmark on another machine.
+rebuilt by rescoring), and the case artifact the benchmark is bound to (its reference
+campaign's ``case/vNNNN``, which a resumed benchmark compares the case with). Unpacked into a
+store (``tar -xzf ... -C hmflow-storage``), the same ``hmflow bench`` command continues the
+benchmark on another machine.
 """
 
 from __future__ import annotations
@@ -57,6 +59,12 @@ def main() -> None:
                 info.size = len(blob)
                 info.mtime = int(f.stat().st_mtime)
                 tar.addfile(info, io.BytesIO(blob))
+        bound = json.loads((args.storage / args.name / "campaign.json").read_text())
+        ref = bound["case_artifact"]
+        case_dir = args.storage / ref["campaign"] / ref["step"] / f"v{int(ref['version']):04d}"
+        if not case_dir.is_dir():
+            raise SystemExit(f"{case_dir}: the case artifact {args.name} is bound to is missing")
+        tar.add(case_dir, arcname=str(case_dir.relative_to(args.storage)))
     print(f"{dest}: {sorted(p.name for p in dest.iterdir())} from {version.path}")
 
 

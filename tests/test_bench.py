@@ -90,6 +90,32 @@ def test_bench_runs_every_method_and_seed_with_exactly_the_budgeted_calls(tmp_pa
     folder = tmp_path / "store" / next(iter(bench_names("synthetic", ["sac-robust"], [0],
                                                        "b")[2]))
     assert json.loads((folder / "campaign.json").read_text())["agent"] == "sac-robust"
+
+    # exported (benchmarks/export_bench.py) and unpacked into another store, as on another
+    # machine, the same command continues it: nothing is simulated, the same table
+    export = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[1] / "benchmarks"
+                                                 / "export_bench.py"), "--name", "b", "--storage",
+                             str(tmp_path / "store"), "--out", str(tmp_path / "out")],
+                            capture_output=True, text=True, timeout=300, check=False)
+    assert export.returncode == 0, export.stderr[-3000:]
+    import tarfile
+
+    other = tmp_path / "other-machine" / "store"
+    other.mkdir(parents=True)
+    with tarfile.open(tmp_path / "out" / "b" / "journals.tar.gz") as tar:
+        tar.extractall(other, filter="data")
+    from storage import ArtifactStore
+
+    bound = json.loads((other / "b" / "campaign.json").read_text())["case_artifact"]
+    case = ArtifactStore(other).get(bound["campaign"], bound["step"], bound["version"])
+    assert case.verify() == []  # the case the benchmark is bound to came along, intact
+    moved = hmflow(*common[:-4], "--storage", str(other), "--name", "b", "--methods",
+                   "random,sac-robust", "--seeds", str(SEEDS + 1), cwd=tmp_path / "other-machine")
+    assert moved.returncode == 0, moved.stdout[-3000:] + moved.stderr[-3000:]
+    assert not list(other.glob("*/runs"))  # no simulator call: every campaign was complete
+    there = pd.read_parquet(sorted((other / "b" / "benchmark").glob("v*"))[-1] / "calls.parquet")
+    pd.testing.assert_frame_equal(there[["method", "seed", "call", "E"]],
+                                  again[["method", "seed", "call", "E"]])
     records = [json.loads(p.read_text()) for p in (folder / "evaluations").glob("*.json")]
     assert any(r.get("E_worst") is not None and r["E_worst"] >= 0 for r in records)
 
