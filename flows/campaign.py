@@ -55,6 +55,14 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
                 and before[k] != v}
         case_changes = _case_changes(store_root, before.get("case_artifact"),
                                      settings.get("case_artifact"))
+        if case_changes is None:
+            bound = before["case_artifact"]
+            raise ValueError(
+                f"campaign '{campaign}' in {store_root} is bound to a case that is not in the "
+                f"store (version {bound.get('version')} of {bound.get('campaign')}/"
+                f"{bound.get('step')}), so the case cannot be compared with it. Copy that "
+                "folder into the store (archives of benchmarks/export_bench.py carry it since "
+                "2026-11-25), or choose another name")
         if case_changes:
             raise ValueError(f"campaign '{campaign}' in {store_root} was started on another "
                              f"case: {'; '.join(case_changes)}. Set the stored values in the "
@@ -100,10 +108,11 @@ def _changed_files(before: dict | None, now: dict | None) -> str:
     return "; ".join(changed)
 
 
-def _case_changes(store_root: str, before: dict | None, given: dict | None) -> list[str]:
+def _case_changes(store_root: str, before: dict | None, given: dict | None) -> list[str] | None:
     """How the given case differs in meaning from the one the campaign was started on (empty:
-    the same case). The same stored content is the same case; a version written again by newer
-    hmflow code (more settings stored, at their defaults) is too, and resumes the campaign."""
+    the same case; None: the case the campaign is bound to is not in the store). The same
+    stored content is the same case; a version written again by newer hmflow code (more
+    settings stored, at their defaults) is too, and resumes the campaign."""
     if not isinstance(before, dict) or not isinstance(given, dict):
         return []
     if before.get("content_hash") == given.get("content_hash"):
@@ -111,6 +120,9 @@ def _case_changes(store_root: str, before: dict | None, given: dict | None) -> l
     store = ArtifactStore(store_root)
     try:
         stored = store.get(before["campaign"], before["step"], before["version"])
+    except (LookupError, KeyError, FileNotFoundError, ValueError):
+        return None
+    try:
         now = store.get(given["campaign"], given["step"], given["version"])
         return stored_case_differences(stored, now)
     except (LookupError, KeyError, FileNotFoundError, ValueError) as exc:

@@ -514,7 +514,8 @@ def test_campaign_resumes_on_a_new_version_of_the_same_case_content(tmp_path):
 
     check_campaign_settings(str(tmp_path), "c", settings(1, "aaa"))
     check_campaign_settings(str(tmp_path), "c", settings(2, "aaa"))  # same content: resumes
-    with pytest.raises(ValueError, match="another case: the stored case cannot be compared"):
+    with pytest.raises(ValueError, match="bound to a case that is not in the store "
+                                         r"\(version 1 of c/case\)"):
         check_campaign_settings(str(tmp_path), "c", settings(3, "bbb"))  # no such version
     with pytest.raises(ValueError, match="other settings"):
         check_campaign_settings(str(tmp_path), "c", {**settings(2, "aaa"), "seed": 1})
