@@ -37,18 +37,36 @@ def bench_names(case_name: str, methods: list[str], seeds: list[int], name: str 
     return bench, f"{bench}-reference", {campaign(m, s): (m, s) for s in seeds for m in methods}
 
 
+def same_settings(store_root: str | Path, campaign: str, method: str, seed: int,
+                  workers: int) -> bool | None:
+    """Whether a campaign of this benchmark was stored under this method, seed, workers and
+    scoring rules (None: no settings stored yet, the campaign has not started)."""
+    path = Path(store_root) / campaign / "campaign.json"
+    if not path.is_file():
+        return None
+    stored = json.loads(path.read_text())
+    return (stored.get("agent"), stored.get("seed"), stored.get("workers"),
+            stored.get("scoring_version"), stored.get("method_version", 1)) == (
+        method, seed, workers, SCORING_VERSION, method_version(method))
+
+
+def same_bench(store_root: str | Path, bench: str, budget: int, workers: int) -> bool | None:
+    """Whether the benchmark itself was stored with this budget and worker count (None: not
+    started). Another budget or worker count is another benchmark, refused by the flow."""
+    path = Path(store_root) / bench / "campaign.json"
+    if not path.is_file():
+        return None
+    stored = json.loads(path.read_text())
+    return (stored.get("budget"), stored.get("workers")) == (budget, workers)
+
+
 def complete(store: ArtifactStore, campaign: str, method: str, seed: int, budget: int,
              workers: int) -> bool:
     """A campaign of this benchmark with all its calls journaled, under the same method, seed,
     workers and scoring rules: nothing to run (its journal is read as it is). Anything else
     goes through the campaign flow, which resumes it or refuses other settings."""
-    path = store.root / campaign / "campaign.json"
-    if not path.is_file() or len(EvaluationJournal(store, campaign).indices()) < budget:
-        return False
-    stored = json.loads(path.read_text())
-    return (stored.get("agent"), stored.get("seed"), stored.get("workers"),
-            stored.get("scoring_version"), stored.get("method_version", 1)) == (
-        method, seed, workers, SCORING_VERSION, method_version(method))
+    return (same_settings(store.root, campaign, method, seed, workers) is True
+            and len(EvaluationJournal(store, campaign).indices()) >= budget)
 
 
 @flow(name="hmflow-bench", log_prints=True, flow_run_name=named_run("name", "bench"))

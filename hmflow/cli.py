@@ -634,9 +634,10 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     console.print(f"benchmark on case {c.name}: {len(chosen)} methods x {seeds} seeds x {budget} "
                   f"calls, {workers} workers, storage {storage}")
     flow_fn = bench_flow
-    campaigns = bench_names(c.name, chosen, list(range(seeds)), name)[2]
+    bench_name, _, campaigns = bench_names(c.name, chosen, list(range(seeds)), name)
     try:
-        with Watch(console, bench_poll(storage, campaigns, budget), _columns("bench"),
+        with Watch(console, bench_poll(storage, campaigns, budget, workers, bench_name),
+                   _columns("bench"),
                    total=len(campaigns) * budget, initial={"current": "starting"}):
             result = flow_fn(case=str(case), methods=chosen, seeds=list(range(seeds)),
                              budget=budget, workers=workers, storage=str(storage), name=name,

@@ -172,21 +172,30 @@ def campaign_poll(storage: Path, campaign: str, budget: int) -> Callable[[], dic
     return poll
 
 
-def bench_poll(storage: Path, campaigns: dict[str, tuple[str, int]], budget: int
-               ) -> Callable[[], dict]:
+def bench_poll(storage: Path, campaigns: dict[str, tuple[str, int]], budget: int,
+               workers: int | None = None, bench: str | None = None) -> Callable[[], dict]:
     """Calls journaled over all the benchmark's campaigns (each counted up to ``budget``) and
-    the method and seed running: the first campaign, in the benchmark's order, not done."""
+    the method and seed running: the first campaign, in the benchmark's order, not done.
+    Given ``workers`` (and ``bench``), calls stored under other settings are not counted: a
+    resume that the flow will refuse shows them as not done, never as a full bar."""
 
     def poll() -> dict:
+        from flows.bench import same_bench, same_settings
         from storage import ArtifactStore, EvaluationJournal
 
+        if bench is not None and workers is not None and same_bench(
+                storage, bench, budget, workers) is False:
+            return {"completed": 0, "current": f"{bench} was stored with another budget or "
+                                               "worker count"}
         store = ArtifactStore(storage)
         done, current, started = 0, None, False
         for name, (method, seed) in campaigns.items():
             n = 0
             if (Path(storage) / name).is_dir():
                 started = True
-                n = min(len(EvaluationJournal(store, name).indices()), budget)
+                if workers is None or same_settings(storage, name, method, seed,
+                                                    workers) is not False:
+                    n = min(len(EvaluationJournal(store, name).indices()), budget)
             done += n
             if current is None and n < budget:
                 current = f"{method} seed {seed}"

@@ -168,6 +168,25 @@ def test_polls_survive_missing_files_and_count_what_appears(tmp_path):
         EvaluationJournal(store, "b-random-s0").record(i, {"status": "COMPLETE", "E": 1.0 + i})
     EvaluationJournal(store, "b-lm-s0").record(0, {"status": "FAIL", "E": None})
     assert term.bench_poll(tmp_path, campaigns, 2)() == {"completed": 3, "current": "lm seed 0"}
+    # calls stored under other settings are not counted: a resume the flow refuses never
+    # shows a full bar first
+    from flows.bench import same_settings
+    from hmcore.agents import method_version
+    from hmcore.evaluation import SCORING_VERSION
+
+    (tmp_path / "b-random-s0" / "campaign.json").write_text(json.dumps(
+        {"agent": "random", "seed": 0, "workers": 2, "scoring_version": SCORING_VERSION,
+         "method_version": method_version("random")}))
+    assert same_settings(tmp_path, "b-random-s0", "random", 0, 2) is True
+    assert same_settings(tmp_path, "b-lm-s0", "lm", 0, 2) is None
+    assert term.bench_poll(tmp_path, campaigns, 2, 2)()["completed"] == 3
+    assert term.bench_poll(tmp_path, campaigns, 2, 1)() == {"completed": 1,
+                                                           "current": "random seed 0"}
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "campaign.json").write_text(json.dumps({"budget": 2, "workers": 2}))
+    assert term.bench_poll(tmp_path, campaigns, 2, 2, "b")()["completed"] == 3
+    assert term.bench_poll(tmp_path, campaigns, 3, 2, "b")() == {
+        "completed": 0, "current": "b was stored with another budget or worker count"}
     assert term.campaign_poll(tmp_path, "b-random-s0", 2)() == {"completed": 2, "best": "1"}
     assert term.campaign_poll(tmp_path, "absent", 2)() == {}
 
