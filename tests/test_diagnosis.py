@@ -307,8 +307,13 @@ class LinearSimulator:
 
     def __init__(self, hidden: Parameter | None = None, hidden_value: float = 1.0, seed: int = 0,
                  hidden_from: float | None = None,
-                 also: tuple[tuple[Parameter, float], ...] = (), starts: bool = False):
+                 also: tuple[tuple[Parameter, float], ...] = (), starts: bool = False,
+                 columns: bool = False):
         self.hidden, self.hidden_value = hidden, hidden_value
+        self.columns = columns  # a box of columns (all layers): the sum of its columns'
+        # signatures, so that overlapping boxes correlate, scaled to a named signature's
+        # size; a column acts on a well as exp(-d^2 / 18), d its distance (cells) to the
+        # well's column in the synthetic deck
         self.also = also  # more hidden parameters (value), over the whole record
         self.hidden_from = hidden_from  # the hidden parameter acts only after this day:
         # an effect that shows late (a candidate of that name too, as a layer the flood
@@ -318,6 +323,19 @@ class LinearSimulator:
         self.days = np.arange(1, 61) * 30.0
         self.wells = ("PROD1", "PROD2", "PROD3", "PROD4")
         self.calls = 0
+
+    WELL_COLUMNS = {"PROD1": (6, 11), "PROD2": (15, 10), "PROD3": (9, 5), "PROD4": (12, 17)}
+
+    def box_signature(self, p: Parameter) -> np.ndarray:
+        i0, i1, j0, j1 = p.box[:4]
+        near = np.repeat([[math.exp(-((i - wi) ** 2 + (j - wj) ** 2) / 18.0)
+                           for wi, wj in self.WELL_COLUMNS.values()]
+                          for i in range(i0, i1 + 1) for j in range(j0, j1 + 1)],
+                         3 * self.days.size, axis=1)
+        cols = [self.signature(f"column_{i}_{j}") for i in range(i0, i1 + 1)
+                for j in range(j0, j1 + 1)]
+        sig = np.sum(near * np.array(cols), axis=0)
+        return sig * np.linalg.norm(cols[0]) / np.linalg.norm(sig)  # a named one's size
 
     def signature(self, name: str) -> np.ndarray:
         rng = np.random.default_rng([self.seed, sum(map(ord, name)) * 7 + len(name)])
@@ -347,7 +365,8 @@ class LinearSimulator:
             params += [p for p, _ in self.also]
             values = {**values, **{p.name: v for p, v in self.also}}
         for p in params:
-            sig = self.signature(p.name)
+            sig = (self.box_signature(p) if self.columns and p.box is not None
+                   and p.box[:4] != (1, 20, 1, 20) else self.signature(p.name))
             if p.kind == "wpimult" and p.start_day is not None:  # a skin change from a date
                 sig = -self.signature(f"skin_{p.wells[0]}") * np.tile(
                     self.days > p.start_day, sig.size // self.days.size)
@@ -375,7 +394,7 @@ class LinearSimulator:
 
 
 def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0, hidden_from=None, also=(),
-                 starts=False):
+                 starts=False, columns=False):
     pytest.importorskip("opm.io")
     from hmcore.case import load_case
     from hmcore.diagnosis.hidden import noisy_history
@@ -383,7 +402,7 @@ def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0, hidden_from=No
 
     field_rng, _ = np.random.default_rng(0).spawn(2)
     (tmp_path / DECK_NAME).write_text(render_deck(make_fields(field_rng), 0))
-    sim = LinearSimulator(hidden, hidden_value, seed, hidden_from, also, starts)
+    sim = LinearSimulator(hidden, hidden_value, seed, hidden_from, also, starts, columns)
     case0 = SimpleNamespace(space=ParameterSpace.reference())
     truth = {"poro_mult": 1.05, "permx_mult": 1.5, "permy_mult": 0.7, "permz_mult": 0.6,
              "skin": 4.0}
@@ -419,11 +438,12 @@ def test_diagnosis_orchestration_on_a_linear_simulator(tmp_path, hidden):
     saved = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
     assert [c["kind"] for c in saved["causes"]] == [c["kind"] for c in doc["causes"]]
     assert "none" in [c["kind"] for c in doc["causes"]]
-    # the noise lines come from the false-alarm rate over this search's 28 candidates and
-    # 2 dated ones (Bonferroni, chi-square with 1 degree of freedom)
+    # the noise lines come from the false-alarm rate over this search's 28 candidates,
+    # 2 dated ones and 2 x 8 moved regional boxes (Bonferroni, chi-square with 1 degree of
+    # freedom)
     from scipy.stats import chi2
     assert doc["settings"]["chi2_threshold"] == doc["settings"]["fit_threshold"] == \
-        pytest.approx(chi2.isf(0.003 / 30, 1))
+        pytest.approx(chi2.isf(0.003 / 46, 1))
     st = doc["statistic"]
     if hidden is None:
         assert st is None or not st["vs_none"]["beyond"]
@@ -444,6 +464,39 @@ def test_diagnosis_orchestration_on_a_linear_simulator(tmp_path, hidden):
         g = doc["gain"]
         assert g["fit_after"] < g["fit_before"] and g["heldout_after"] < g["heldout_before"]
         assert g["ssr_heldout_after"] < g["ssr_heldout_before"]
+
+
+def test_a_region_beside_a_well_is_named_by_a_moved_box(tmp_path):
+    """A permeability box beside PROD2 (the well at its corner, no other well inside), in a
+    linear simulator where a box's signature is the sum of its columns' (each acting on the
+    wells near it): the box centred on PROD2 shares 16 of its 49 columns and scores beyond
+    noise, so the ranking tries it moved beside the well, and the moved box that is the
+    truth's is named - not the centred one, not a skin."""
+    from hmcore.diagnosis import DiagnosisSettings, diagnose
+    from hmcore.diagnosis.extensions import shifted_regions, well_column
+    from hmcore.diagnosis.hidden import synthetic_deck_info
+
+    info = synthetic_deck_info(0, tmp_path / "d")
+    moved = {c.id: c for c in shifted_regions(info, "PROD2")}
+    truth = moved["regional_permeability:PROD2:i9-15:j10-16"]
+    assert len(moved) == 8 and well_column(info, "PROD2") == (15, 10)
+    for c in moved.values():  # the well on each moved box's edge or corner, never inside
+        b = c.parameter.box
+        assert b[0] <= 15 <= b[1] and b[2] <= 10 <= b[3] and c.wells == ("PROD2",)
+        assert 15 in (b[0], b[1]) or 10 in (b[2], b[3])
+    corner = {c.parameter.box[:4] for c in shifted_regions(info, "PROD1")}  # (6, 11)
+    assert all(b[0] >= 1 and b[1] - b[0] >= 3 for b in corner) and len(corner) == 8
+    case, sim, _ = _linear_case(tmp_path, truth.parameter, 0.3, columns=True)
+    doc = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(plots=False))
+    ranked = {c["id"]: c for c in doc["ranking"]["candidates"]}
+    assert set(moved) <= set(ranked), "the moved boxes of PROD2 were not probed"
+    assert doc["selected"]["id"] == truth.id, doc["verdict"]
+    assert [a["id"] for a in doc["accepted"]] == [truth.id]
+    # not asked for: no moved box is probed, and the centred box cannot name it
+    off = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(plots=False,
+                                                                       region_shifts=0))
+    assert not set(moved) & {c["id"] for c in off["ranking"]["candidates"]}
+    assert off["gain"]["fit_after"] > doc["gain"]["fit_after"]
 
 
 def test_a_candidate_under_the_line_is_confirmed_by_its_recalibration(tmp_path):

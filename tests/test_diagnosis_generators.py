@@ -28,7 +28,7 @@ def synthetic(tmp_path_factory):
 
 @pytest.mark.parametrize("seed", range(6))
 def test_generated_effects_lie_beyond_the_library(synthetic, seed):
-    from hmcore.diagnosis.extensions import build_candidates, well_column
+    from hmcore.diagnosis.extensions import build_candidates, shifted_regions, well_column
     from hmcore.diagnosis.generators import generate
 
     info, truth = synthetic
@@ -53,11 +53,15 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     (region,) = generate("offcentre_region", seed, info, space, truth)
     b = region.parameter.box
     centre = ((b[0] + b[1]) // 2, (b[2] + b[3]) // 2)
-    assert region.kind == "regional_permeability" and b not in boxes
+    moved = {tuple(c.parameter.box) for w in info.producers for c in shifted_regions(info, w)}
+    assert region.kind == "regional_permeability" and b not in boxes and b not in moved
     assert centre not in columns  # beside a well, not centred on one
     wi, wj = well_column(info, region.candidate.wells[0])
     assert min(abs(centre[0] - wi), abs(centre[1] - wj)) >= 3  # off in both i and j
-    assert region.candidate.details["expect_wells"] == list(region.candidate.wells)
+    inside = {w for w, (ci, cj) in ((w, well_column(info, w)) for w in info.producers)
+              if b[0] <= ci <= b[1] and b[2] <= cj <= b[3]}
+    assert set(region.candidate.details["expect_any_wells"]) == \
+        inside | set(region.candidate.wells)  # the well it is beside, and any inside it
 
     (endpoint,) = generate("relperm_endpoint", seed, info, space, truth)
     assert endpoint.kind == "relative_permeability"

@@ -206,6 +206,45 @@ def regional_permeability(info: DeckInfo, space: ParameterSpace,
     return out
 
 
+SHIFTS = tuple((si, sj) for si in (-1, 0, 1) for sj in (-1, 0, 1) if (si, sj) != (0, 0))
+"""Directions a regional box is moved in by :func:`shifted_regions` (times its half width)."""
+
+
+def shifted_regions(info: DeckInfo, well: str, taken: list[tuple[int, ...]] = ()
+                    ) -> list[Candidate]:
+    """The box of ``regional_permeability:<well>`` moved by its half width in i, j or both
+    (:data:`SHIFTS`): a region beside the well, the well on its edge or at its corner. A moved
+    box that the grid's edge cuts to fewer than half width + 1 cells across, or that equals a
+    box in ``taken`` (another candidate's), is left out. The ranking probes these for the
+    wells whose centred box scores beyond noise (:mod:`hmcore.diagnosis.workflow`)."""
+    nx, ny, nz = info.dims
+    h = REGION_HALF_WIDTH
+    i, j = well_column(info, well)
+    seen = {tuple(b) for b in taken}
+    seen.add((max(1, i - h), min(nx, i + h), max(1, j - h), min(ny, j + h), 1, nz))
+    out = []
+    for si, sj in SHIFTS:
+        ci, cj = i + si * h, j + sj * h
+        box = (max(1, ci - h), min(nx, ci + h), max(1, cj - h), min(ny, cj + h), 1, nz)
+        if box in seen or box[1] - box[0] < h or box[3] - box[2] < h:
+            continue
+        seen.add(box)
+        where = f"i{box[0]}-{box[1]}:j{box[2]}-{box[3]}"
+        p = Parameter(name=f"perm_region_{_slug(well)}_{where.replace(':', '_').replace('-', '_')}",
+                      kind="multiply", keywords=("PERMX", "PERMY"), box=box,
+                      low=PERM_BOUNDS[0], high=PERM_BOUNDS[1],
+                      description=f"PERMX and PERMY multiplier of cells i {box[0]}-{box[1]}, "
+                                  f"j {box[2]}-{box[3]} (beside {well})")
+        out.append(Candidate(f"regional_permeability:{well}:{where}", "regional_permeability",
+                             p, (well,), (),
+                             f"the rock beside well {well} (cells i {box[0]}-{box[1]}, j "
+                             f"{box[2]}-{box[3]}, all layers: the box around it moved "
+                             f"{h} cells) is more or less permeable than the model says",
+                             1.0, PROBE["regional_permeability"],
+                             {"box": list(box), "shift": [si * h, sj * h]}))
+    return out
+
+
 def layer_permeability(info: DeckInfo, space: ParameterSpace,
                        values: dict[str, float]) -> list[Candidate]:
     nx, ny, nz = info.dims

@@ -11,8 +11,9 @@ generator            the truth hides                                        a ri
 ==================== ===================================================== ==================
 ``partial_fault``    MULTX/MULTY on part of a plane (40-60 % of its        the fault family
                      length) between producers, off the library's midlines
-``offcentre_region`` a permeability box of 7x7 columns centred 3-4 cells   the regional family
-                     off a well in both i and j                              at that well
+``offcentre_region`` a permeability box of 5x5, 7x7 or 9x9 columns         the regional family
+                     centred 3-4 cells off a well in both i and j (never    at that well or at
+                     one of the library's boxes, centred or moved)          a well inside it
 ``relperm_endpoint`` the water curve's critical saturation moved by        the relative-
                      +-0.05-0.10 (end-point scaling, not a shape change)    permeability family
 ``two_kinds``        two library effects of different kinds at once        both, each by kind
@@ -27,8 +28,9 @@ generator            the truth hides                                        a ri
 
 Each effect is a :class:`hmcore.diagnosis.hidden.HiddenEffect` whose candidate's ``kind`` is the
 family a right answer names (``unexplained`` for no family) and whose ``details`` say which
-generator made it and what a right answer must also name (``expect_wells``; ``expect_ids``:
-the candidates that count, where the family has several that would not). Strengths are
+generator made it and what a right answer must also name (``expect_wells``: all of them;
+``expect_any_wells``: one of them; ``expect_ids``: the candidates that count, where the
+family has several that would not). Strengths are
 drawn a few times above the noise, as the library's (:data:`hidden.STRENGTH`). Pure: nothing
 here simulates; :func:`hmcore.diagnosis.hidden.write_hidden_synthetic_case` and
 ``write_hidden_deck_case`` run the truth.
@@ -42,7 +44,8 @@ import numpy as np
 
 from hmcore.deck_info import DeckInfo
 from hmcore.diagnosis.extensions import (FAULT_BOUNDS, KINDS, PERM_BOUNDS, Candidate,
-                                         build_candidates, dated_productivity, well_column)
+                                         build_candidates, dated_productivity, shifted_regions,
+                                         well_column)
 from hmcore.parameters import Parameter, ParameterSpace
 from hmcore.results import natural_key
 
@@ -120,17 +123,28 @@ def _offcentre_region(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candi
     wells = sorted(info.producers, key=natural_key)
     well = wells[int(rng.integers(len(wells)))]
     i, j = well_column(info, well)
+    # the library's boxes: centred on each producer, and those moved beside it; the truth is
+    # none of them (another size, or another place)
+    library = {tuple(c.parameter.box) for c in build_candidates(
+        info, space, None, ("regional_permeability",))}
+    library |= {tuple(c.parameter.box) for w in wells for c in shifted_regions(info, w)}
+    for _ in range(50):
+        h = int(rng.integers(2, 5))  # a box of 5x5, 7x7 or 9x9 columns
 
-    def shifted(x: int, n: int) -> int:
-        """x moved 3-4 cells, towards the side with room for the 7-cell box."""
-        d = int(rng.integers(3, 5))
-        up, down = x + d, x - d
-        if up <= n - 3 and (down < 4 or rng.random() < 0.5):
-            return up
-        return down if down >= 4 else int(np.clip(up, 4, n - 3))
+        def shifted(x: int, n: int) -> int:
+            """x moved 3-4 cells, towards the side with room for the box."""
+            d = int(rng.integers(3, 5))
+            up, down = x + d, x - d
+            if up <= n - h and (down < h + 1 or rng.random() < 0.5):
+                return up
+            return down if down >= h + 1 else int(np.clip(up, h + 1, n - h))
 
-    ci, cj = shifted(i, nx), shifted(j, ny)
-    box = (ci - 3, ci + 3, cj - 3, cj + 3, 1, nz)
+        ci, cj = shifted(i, nx), shifted(j, ny)
+        box = (ci - h, ci + h, cj - h, cj + h, 1, nz)
+        if box not in library:
+            break
+    inside = [w for w in wells if w != well and box[0] <= well_column(info, w)[0] <= box[1]
+              and box[2] <= well_column(info, w)[1] <= box[3]]
     lo, hi = (0.15, 0.35) if rng.random() < 0.6 else (3.0, 6.0)
     p = Parameter(name=f"hidden_region_{ci}_{cj}", kind="multiply", keywords=("PERMX", "PERMY"),
                   box=box, low=PERM_BOUNDS[0], high=PERM_BOUNDS[1],
@@ -139,8 +153,10 @@ def _offcentre_region(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candi
     c = Candidate(f"offcentre_region:{well}:i{box[0]}-{box[1]}:j{box[2]}-{box[3]}",
                   "regional_permeability", p, (well,), (),
                   f"the rock of cells i {box[0]}-{box[1]}, j {box[2]}-{box[3]} is more or less "
-                  f"permeable: a box beside {well}, not centred on it",
-                  details={"generated": "offcentre_region", "expect_wells": [well]})
+                  f"permeable: a box beside {well}, not centred on it"
+                  + (f" ({', '.join(inside)} inside it)" if inside else ""),
+                  details={"generated": "offcentre_region", "expect_wells": [],
+                           "expect_any_wells": [well, *inside]})
     return c, _log_uniform(rng, lo, hi)
 
 

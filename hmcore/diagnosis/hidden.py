@@ -76,6 +76,7 @@ class HiddenEffect:
                 "description": self.candidate.description,
                 "generated": self.candidate.details.get("generated"),
                 "expect_wells": self.candidate.details.get("expect_wells") or [],
+                "expect_any_wells": self.candidate.details.get("expect_any_wells") or [],
                 "expect_ids": self.candidate.details.get("expect_ids") or [],
                 "start_day": self.candidate.details.get("start_day")}
 
@@ -109,6 +110,7 @@ def chosen_effect(candidate_id: str, value: float, info: DeckInfo, space: Parame
 
 def _effect_of(e: dict) -> HiddenEffect:
     details = {"generated": e["generated"], "expect_wells": e.get("expect_wells") or [],
+               "expect_any_wells": e.get("expect_any_wells") or [],
                "expect_ids": e.get("expect_ids") or []} if e.get("generated") else {}
     if e.get("start_day") is not None:
         details["start_day"] = float(e["start_day"])
@@ -407,7 +409,8 @@ def names(cause: dict, effect: HiddenEffect) -> bool:
     and where the kind names one, the same well (well skin, regional permeability), layer
     (layer and vertical permeability) or candidate (fault plane, aquifer item, relperm
     table). A generated effect (:mod:`hmcore.diagnosis.generators`), which no candidate
-    matches exactly: its family, naming the wells it expects (``expect_wells``)."""
+    matches exactly: its family, naming the wells it expects (``expect_wells``: all;
+    ``expect_any_wells``: one of them)."""
     h = effect.candidate
     if cause["kind"] != h.kind:
         return False
@@ -419,8 +422,9 @@ def names(cause: dict, effect: HiddenEffect) -> bool:
         if got is None or abs(float(got) - float(start)) > START_TOLERANCE_DAYS:
             return False
     if effect.generated:
-        ids = h.details.get("expect_ids")
+        ids, any_of = h.details.get("expect_ids"), h.details.get("expect_any_wells")
         return set(h.details.get("expect_wells") or []) <= set(cause["wells"]) and \
+            (not any_of or bool(set(any_of) & set(cause["wells"]))) and \
             (not ids or cause["id"] in ids)
     if h.kind in ("well_skin", "regional_permeability"):
         return cause["wells"] == list(h.wells)

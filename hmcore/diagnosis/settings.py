@@ -104,6 +104,13 @@ class DiagnosisSettings:
     dated_max: int = 2
     """Wells whose productivity change the ranking dates (``productivity_change``): at most
     this many dated candidates, one probe run each (see :mod:`hmcore.diagnosis.dating`)."""
+    region_shifts: int = 2
+    """Regional-permeability candidates beyond noise (the strongest first, at most this many
+    wells) whose box the ranking also tries moved by its half width in i, j or both - the
+    well at an edge or a corner of the box, 8 more probe runs a well - for a region beside a
+    well rather than centred on it (see :func:`hmcore.diagnosis.extensions.shifted_regions`;
+    0: never). They count as candidates in the noise lines whether or not they are run, and
+    are run only when the budget leaves room for them."""
     dating_alpha: float = 0.05
     """A start date is kept when its chi2 gain over the undated change reaches what noise
     makes with this probability over the dates scanned (Bonferroni, chi-square with 1 degree
@@ -206,6 +213,10 @@ class DiagnosisSettings:
         if not 0.0 < self.false_alarm < 1.0:
             problems.append(Problem("false_alarm", f"must lie in (0, 1), got {self.false_alarm}",
                                     "give a probability such as 0.003"))
+        if self.region_shifts < 0:
+            problems.append(Problem("region_shifts", f"must be at least 0, got "
+                                    f"{self.region_shifts}", "give 0 (never) or a number of "
+                                    "wells, such as 2"))
         if self.workers < 1:
             problems.append(Problem("workers", f"must be at least 1, got {self.workers}",
                                     "give a positive number of simulations at once"))

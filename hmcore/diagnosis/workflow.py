@@ -10,7 +10,10 @@ artifacts; :func:`diagnose` runs them all):
    (:func:`hmcore.diagnosis.residuals.analyse_residuals`);
 3. ``rank``       - one finite-difference run per candidate extension (and per global
    parameter for a fresh Jacobian), all in one parallel batch; score test with the globals
-   projected out (:mod:`hmcore.diagnosis.screening`);
+   projected out (:mod:`hmcore.diagnosis.screening`); then probes of what that batch points
+   to: dated productivity changes (:mod:`hmcore.diagnosis.dating`) and the boxes of the
+   strongest regional candidates moved beside their wells
+   (:func:`hmcore.diagnosis.extensions.shifted_regions`), all ranked together;
 4. ``extend``     - the extended models of the leading candidates (globals + one new
    parameter each), warm-started at the calibrated point with the linear model's step;
 5. ``recalibrate``- the extended models recalibrated together (lockstep LM, Broyden Jacobian
@@ -51,7 +54,8 @@ from hmcore.case import Case
 from hmcore.diagnosis import dating, decision, refit, screening
 from hmcore.diagnosis.attribution import Score, projector_basis
 from hmcore.diagnosis.extensions import (Candidate, base_values, build_candidates,
-                                         current_skin, dated_productivity, extended_space)
+                                         SHIFTS, current_skin, dated_productivity,
+                                         extended_space, shifted_regions)
 from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings, Point,
                                           run_lockstep)
 from hmcore.diagnosis.residuals import ObservationSet, analyse_residuals
@@ -79,6 +83,14 @@ def _dated_reserve(case: Case, settings: DiagnosisSettings) -> int:
     if "productivity_change" not in settings.kinds:
         return 0
     return min(settings.dated_max, len(case.info.producers))
+
+
+def _shift_tests(case: Case, settings: DiagnosisSettings) -> int:
+    """Moved regional boxes the ranking may probe: candidates in the noise lines' count (run
+    only when the budget leaves room, so not in :func:`minimum_runs`)."""
+    if "regional_permeability" not in settings.kinds:
+        return 0
+    return len(SHIFTS) * min(settings.region_shifts, len(case.info.producers))
 
 
 def budget_problem(case: Case, settings: DiagnosisSettings, given: bool,
@@ -167,7 +179,7 @@ class Diagnosis:
                  log: Callable[[str], None] | None = None):
         settings = settings or DiagnosisSettings()
         self.n_tests = (len(build_candidates(case.info, case.space, None, settings.kinds))
-                        + _dated_reserve(case, settings))
+                        + _dated_reserve(case, settings) + _shift_tests(case, settings))
         self.settings = with_lines(settings, self.n_tests)
         self.obs = ObservationSet.from_case(case, self.settings.heldout_fraction)
         if case.history_end_days is None:  # score E on the same split as the residuals
@@ -385,14 +397,18 @@ class Diagnosis:
                                   [getattr(run.result, "reason", "") for run in runs], r0,
                                   self.J_global, self.held_globals, self.coords.names, s)
         datings, dated = self._date(result, r0)
-        if dated:  # the dated candidates' probes, then the ranking of them all
-            self.candidates = self.candidates + dated
+        shifted = self._shifted(result, len(dated))
+        for added, step in ((dated, "dating"), (shifted, "region-shifts")):
+            if not added:  # their probes, then the ranking of them all
+                continue
+            self.candidates = self.candidates + added
             self.union_case = self.case.with_space(extended_space(self.case.space,
                                                                   self.candidates))
-            more = screening.probe_jobs(self.coords, self.u_base, values0, dated, False,
+            more = screening.probe_jobs(self.coords, self.u_base, values0, added, False,
                                         s.global_fd_step)
             jobs, runs = jobs + more, runs + self._run(self.union_case,
-                                                       [j.values for j in more], "dating")
+                                                       [j.values for j in more], step)
+        if dated or shifted:
             residuals = [run.r_fit for run in runs]
             result = screening.screen(self.candidates, jobs, residuals,
                                       [getattr(run.result, "reason", "") for run in runs], r0,
@@ -407,6 +423,34 @@ class Diagnosis:
         self.log(f"ranking: {len(beyond)} of {len(order)} candidates beyond noise "
                  f"({len(self.ranking['screened'])} screened for recalibration); top: {top}")
         return self.ranking
+
+    def _shifted(self, result: screening.Screening, reserved: int) -> list[Candidate]:
+        """The moved boxes of the strongest regional candidates beyond noise (at most
+        ``settings.region_shifts`` wells), when the budget leaves room for their probes
+        besides ``reserved`` others."""
+        s = self.settings
+        if "regional_permeability" not in s.kinds or s.region_shifts < 1:
+            return []
+        by_id = {c.id: c for c in self.candidates}
+        regional = [k for k in result.document["beyond_noise"]
+                    if by_id[k].kind == "regional_permeability" and "shift" not in
+                    by_id[k].details][: s.region_shifts]
+        taken = [tuple(c.parameter.box) for c in self.candidates
+                 if c.kind == "regional_permeability" and c.parameter.box]
+        out: list[Candidate] = []
+        for k in regional:
+            moved = shifted_regions(self.case.info, by_id[k].wells[0], taken)
+            taken += [tuple(c.parameter.box) for c in moved]
+            out += [c for c in moved if c.name not in self.case.space.names]
+        left = self.left(reserved)
+        if left is not None and len(out) > left:
+            self.log(f"ranking: the moved boxes of {', '.join(regional)} not probed: "
+                     f"{len(out)} runs, {left} left of the budget")
+            return []
+        if out:
+            self.log(f"ranking: {len(out)} moved boxes beside "
+                     f"{', '.join(by_id[k].wells[0] for k in regional)}")
+        return out
 
     def _date(self, result: screening.Screening, r0: np.ndarray
               ) -> tuple[list[dating.Dating], list[Candidate]]:
