@@ -80,6 +80,10 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     assert start in info.report_days and 0.2 <= start / info.end_days <= 0.5
     assert dated.candidate.details["expect_wells"] == list(dated.parameter.wells)
     assert dated.value <= 0.35 or dated.value >= 3.0
+    (late,) = generate("late_productivity", seed, info, space, truth)
+    start = late.parameter.start_day
+    assert late.kind == "productivity_change" and 0.6 <= start / info.end_days <= 0.7
+    assert late.candidate.details["generated"] == "late_productivity"
     assert generate("two_kinds", seed, info, space, truth)[1].value == two[1].value  # seeded
 
 

@@ -24,6 +24,8 @@ generator            the truth hides                                        a ri
                      report date in 20-50 % of the schedule on (WPIMULT    change family, that
                      x0.15-0.35 or x3-6: damage or a stimulation)           well, its start
                                                                             date within 92 days
+``late_productivity`` the same from 60-70 % of the schedule on: mostly      the same
+                     after a fitted window of 75 % of the record
 ==================== ===================================================== ==================
 
 Each effect is a :class:`hmcore.diagnosis.hidden.HiddenEffect` whose candidate's ``kind`` is the
@@ -50,7 +52,7 @@ from hmcore.parameters import Parameter, ParameterSpace
 from hmcore.results import natural_key
 
 GENERATORS = ("partial_fault", "offcentre_region", "relperm_endpoint", "two_kinds", "contact",
-              "dated_productivity")
+              "dated_productivity", "late_productivity")
 START_TOLERANCE_DAYS = 92.0
 """A dated cause names a dated effect when its start is this close (about a quarter)."""
 TWO_KINDS_FROM = ("well_skin", "regional_permeability", "layer_permeability",
@@ -77,7 +79,8 @@ def generate(name: str, seed: int, info: DeckInfo, space: ParameterSpace,
         return [draw_effect(offered[int(k)], seed, info, space, values) for k in (a, b)]
     c, value = {"partial_fault": _partial_fault, "offcentre_region": _offcentre_region,
                 "relperm_endpoint": _relperm_endpoint, "contact": _contact,
-                "dated_productivity": _dated_productivity}[name](rng, info, space)
+                "dated_productivity": _dated_productivity,
+                "late_productivity": _late_productivity}[name](rng, info, space)
     return [HiddenEffect(c, value)]
 
 
@@ -189,18 +192,28 @@ def _contact(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, flo
     return c, factor
 
 
-def _dated_productivity(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
+def _dated_productivity(rng, info: DeckInfo, space: ParameterSpace,
+                        span: tuple[float, float] = (0.2, 0.5),
+                        generated: str = "dated_productivity") -> tuple[Candidate, float]:
     wells = sorted(info.producers, key=natural_key)
     well = wells[int(rng.integers(len(wells)))]
     end = info.end_days
-    days = [d for d in info.report_days if 0.2 * end <= d <= 0.5 * end]
+    days = [d for d in info.report_days if span[0] * end <= d <= span[1] * end]
     if not days:
-        raise ValueError(f"the deck {info.path} has no report step in 20-50 % of its schedule "
-                         "to start a productivity change at")
+        raise ValueError(f"the deck {info.path} has no report step in "
+                         f"{span[0]:.0%}-{span[1]:.0%} of its schedule to start a "
+                         "productivity change at")
     day = float(days[int(rng.integers(len(days)))])
     lib = dated_productivity(info, well, day)
     c = Candidate(lib.id, lib.kind, lib.parameter, lib.wells, (), lib.description,
-                  details={"generated": "dated_productivity", "expect_wells": [well],
+                  details={"generated": generated, "expect_wells": [well],
                            "start_day": day})
     lo, hi = (0.15, 0.35) if rng.random() < 0.6 else (3.0, 6.0)
     return c, _log_uniform(rng, lo, hi)
+
+
+def _late_productivity(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
+    """A productivity change from 60-70 % of the schedule on: most of its signal lies after a
+    fitted window of 75 % of the record, so a diagnosis that stops at that window sees little
+    of it (issue 18, point 1: take the longer record)."""
+    return _dated_productivity(rng, info, space, (0.6, 0.7), "late_productivity")
