@@ -944,11 +944,28 @@ def test_two_hidden_effects_are_both_accepted_each_with_its_gain(tmp_path):
     assert doc["rounds"][0]["accepted"] == accepted[1]["id"]
     report = (tmp_path / "out" / "report.md").read_text()
     assert "## Accepted causes" in report and layer.id in report and skin.id in report
+    assert "incomplete" not in doc["verdict"]  # the pair leaves noise in the held-back data
     # one cause only when asked: the second is not looked for
     one = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(plots=False,
                                                                        max_causes=1))
     assert len(one["accepted"]) == 1 and one["rounds"] == []
     assert one["no_second_round"] == "max_causes is 1"
+
+
+def test_accepted_causes_that_leave_the_held_back_history_beyond_noise_say_so():
+    from hmcore.diagnosis import DiagnosisSettings
+    from hmcore.diagnosis.decision import heldout_noise_line
+    from hmcore.diagnosis.forward import remaining_text
+
+    s = DiagnosisSettings()
+    line = heldout_noise_line(260, s)
+    assert 260 < line < 731
+    text = remaining_text(731.0, 260, s, "well_skin:PROD1 and well_skin:PROD4", pair=True)
+    assert "incomplete" in text and "731" in text and f"{line:.0f}" in text
+    assert "third cause" in text
+    assert "another shape" in remaining_text(731.0, 260, s, "well_skin:PROD1")
+    assert remaining_text(line - 1, 260, s, "x") == ""
+    assert remaining_text(731.0, 0, s, "x") == ""  # nothing measured held back
 
 
 def test_a_late_effect_behind_a_vetoed_cause_is_found_on_a_later_window(tmp_path):

@@ -135,6 +135,8 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
         else:
             doc["verdict"] += (f". A second round with {p.first} in the model ({d2.n_runs} "
                                "simulations) found no further cause beyond noise")
+            doc["verdict"] += remaining_text(first_conf["ssr_heldout_after"],
+                                             d1.obs.n_noise("heldout"), s, p.first)
         return doc, None
     by_id1 = {c["id"]: c for c in doc1["causes"]}
     a = {**_cause(doc1, p.first), "evidence": (
@@ -157,7 +159,9 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
             if p.tentative else doc1["verdict"] + f". With {p.first} in the model, a second "
             f"cause: {doc2['verdict']}")
     doc["verdict"] = (f"{head}. Both: fitted E {g['fit_before']:.4g} -> {g['fit_after']:.4g}, "
-                      f"held-back E {g['heldout_before']:.4g} -> {g['heldout_after']:.4g}")
+                      f"held-back E {g['heldout_before']:.4g} -> {g['heldout_after']:.4g}"
+                      + remaining_text(again.ssr_heldout, d1.obs.n_noise("heldout"), s,
+                                       f"{p.first} and {second}", pair=True))
     base_ho = decision.per_well_heldout(d1.case, d1.base.responses)
     doc["per_well_response"] = {"extension": f"{p.first} + {second}", "rows":
                                 decision.per_well_table(
@@ -165,6 +169,22 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
                                     second_conf["per_well_response_after"],
                                     second_conf["per_well_response_heldout_after"])}
     return doc, pair_run
+
+
+def remaining_text(ssr_heldout: float, n_heldout: int, s, causes: str,
+                   pair: bool = False) -> str:
+    """A sentence for the verdict when the model with the accepted ``causes`` still misses the
+    held-back history beyond noise (whitened SSR over the noise line of
+    :func:`hmcore.diagnosis.decision.heldout_noise_line`, under round 1's noise model): the
+    answer explains part of the data, not all of it. Empty otherwise."""
+    line = decision.heldout_noise_line(n_heldout, s)
+    if not n_heldout or ssr_heldout <= line:
+        return ""
+    more = ("a third cause, or other shapes for these two (hmflow accepts two at most)" if pair
+            else "a cause of a family not searched, or of another shape")
+    return (f". With {causes} the model still misses the held-back history beyond noise "
+            f"(whitened SSR {ssr_heldout:.0f} over {n_heldout} measured points, noise up to "
+            f"{line:.0f}): the answer is incomplete - {more} may act")
 
 
 def _cause(doc: dict, cid: str) -> dict:
