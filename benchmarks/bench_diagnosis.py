@@ -89,9 +89,22 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
     out["named_on"] = doc.get("named_on")
     out["hidden_values"] = {e.candidate.id: e.value for e in effects}
     out.update({"case": case, "kind": kind or "control", "seed": seed, "wall_s": wall,
+                "commit": _commit(),
                 "simulations": doc["cost"]["simulations"], "out": str(tmp / "out"),
                 "selected": out.get("selected", doc["selected"] and doc["selected"]["id"])})
     return out
+
+
+def _commit() -> str | None:
+    """The code's git commit (None outside a checkout), so a row says what made it."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, timeout=10, cwd=Path(__file__).resolve().parent
+                              ).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
 
 
 def _read_jsonl(path: Path) -> list[dict]:
