@@ -56,8 +56,9 @@ def same_bench(store_root: str | Path, bench: str, budget: int, workers: int) ->
     path = Path(store_root) / bench / "campaign.json"
     if not path.is_file():
         return None
-    stored = json.loads(path.read_text())
-    return (stored.get("budget"), stored.get("workers")) == (budget, workers)
+    stored = json.loads(path.read_text())  # a key not stored yet (older stores): not checked
+    return all(stored[k] == v for k, v in (("budget", budget), ("workers", workers))
+               if k in stored)
 
 
 def complete(store: ArtifactStore, campaign: str, method: str, seed: int, budget: int,

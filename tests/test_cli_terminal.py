@@ -187,6 +187,8 @@ def test_polls_survive_missing_files_and_count_what_appears(tmp_path):
     assert term.bench_poll(tmp_path, campaigns, 2, 2, "b")()["completed"] == 3
     assert term.bench_poll(tmp_path, campaigns, 3, 2, "b")() == {
         "completed": 0, "current": "b was stored with another budget or worker count"}
+    (tmp_path / "b" / "campaign.json").write_text(json.dumps({"case_artifact": {}}))
+    assert term.bench_poll(tmp_path, campaigns, 3, 2, "b")()["completed"] == 4  # older store
     assert term.campaign_poll(tmp_path, "b-random-s0", 2)() == {"completed": 2, "best": "1"}
     assert term.campaign_poll(tmp_path, "absent", 2)() == {}
 

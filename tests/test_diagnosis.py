@@ -469,9 +469,9 @@ def test_diagnosis_orchestration_on_a_linear_simulator(tmp_path, hidden):
 def test_a_region_beside_a_well_is_named_by_a_moved_box(tmp_path):
     """A permeability box beside PROD2 (the well at its corner, no other well inside), in a
     linear simulator where a box's signature is the sum of its columns' (each acting on the
-    wells near it): the box centred on PROD2 shares 16 of its 49 columns and scores beyond
-    noise, so the ranking tries it moved beside the well, and the moved box that is the
-    truth's is named - not the centred one, not a skin."""
+    wells near it): the boxes centred on PROD2 and PROD4 share 16 and 21 of its 49 columns
+    and score beyond noise, so the ranking tries them moved beside their wells, and the moved
+    box that is the truth's is named - not a centred one, not a skin."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import shifted_regions, well_column
     from hmcore.diagnosis.hidden import synthetic_deck_info

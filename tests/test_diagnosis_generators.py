@@ -58,10 +58,12 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     assert centre not in columns  # beside a well, not centred on one
     wi, wj = well_column(info, region.candidate.wells[0])
     assert min(abs(centre[0] - wi), abs(centre[1] - wj)) >= 3  # off in both i and j
-    inside = {w for w, (ci, cj) in ((w, well_column(info, w)) for w in info.producers)
-              if b[0] <= ci <= b[1] and b[2] <= cj <= b[3]}
-    assert set(region.candidate.details["expect_any_wells"]) == \
-        inside | set(region.candidate.wells)  # the well it is beside, and any inside it
+    from hmcore.diagnosis.hidden import boxes_agree
+
+    assert boxes_agree(b, b) and not boxes_agree(b, None)
+    centred = next(c.parameter.box for c in library if c.id ==
+                   f"regional_permeability:{region.candidate.wells[0]}")
+    assert not boxes_agree(centred, b)  # the box centred on the well is not the truth's
 
     (endpoint,) = generate("relperm_endpoint", seed, info, space, truth)
     assert endpoint.kind == "relative_permeability"
@@ -126,10 +128,19 @@ def test_the_judge_asks_each_effect_its_family_and_wells(synthetic):
     space = ParameterSpace.reference()
     (region,) = generate("offcentre_region", 1, info, space, truth)
     well = region.candidate.wells[0]
-    right = {"id": f"regional_permeability:{well}", "kind": "regional_permeability",
-             "wells": [well], "layers": [], "chi2": 80.0}
-    wrong = {**right, "id": "regional_permeability:X", "wells": ["X"]}
+    i0, i1, j0, j1 = region.parameter.box[:4]
+
+    def regional(box, wells=(well,)):
+        return {"id": f"regional_permeability:{wells[0]}:{box}", "kind": "regional_permeability",
+                "wells": list(wells), "layers": [], "chi2": 80.0,
+                "machine": {"parameter": {"box": list(box)}}}
+
+    right = regional((i0 - 1, i1 + 1, j0 - 1, j1 + 1, 1, 5))  # a box around the truth's
+    moved = regional((i0 + 3, i1 + 3, j0, j1, 1, 5), ("X",))  # along one axis: most shared
+    wrong = regional((i0 + 3, i1 + 3, j0 + 3, j1 + 3, 1, 5))  # the same well, both axes off
     assert judge_effects(_doc([right]), [region])["found"]
+    assert judge_effects(_doc([moved]), [region])["found"] == \
+        ((i1 - i0 + 1) - 3 >= 0.5 * (i1 - i0 + 1))  # a well's label does not decide
     assert not judge_effects(_doc([wrong]), [region])["found"]
     assert not judge_effects(_doc([right], after=0.03), [region])["found"]  # held back worse
     (contact,) = generate("contact", 1, info, space, truth)

@@ -76,7 +76,6 @@ class HiddenEffect:
                 "description": self.candidate.description,
                 "generated": self.candidate.details.get("generated"),
                 "expect_wells": self.candidate.details.get("expect_wells") or [],
-                "expect_any_wells": self.candidate.details.get("expect_any_wells") or [],
                 "expect_ids": self.candidate.details.get("expect_ids") or [],
                 "start_day": self.candidate.details.get("start_day")}
 
@@ -110,7 +109,6 @@ def chosen_effect(candidate_id: str, value: float, info: DeckInfo, space: Parame
 
 def _effect_of(e: dict) -> HiddenEffect:
     details = {"generated": e["generated"], "expect_wells": e.get("expect_wells") or [],
-               "expect_any_wells": e.get("expect_any_wells") or [],
                "expect_ids": e.get("expect_ids") or []} if e.get("generated") else {}
     if e.get("start_day") is not None:
         details["start_day"] = float(e["start_day"])
@@ -404,13 +402,34 @@ def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=No
 
 
 # ----------------------------------------------------------------------------- scoring a finding
+def boxes_agree(a, b) -> bool:
+    """Do two boxes of columns (i0, i1, j0, j1, ...; 1-based, inclusive) mostly coincide: at
+    least half of each one's columns inside the other? A 7x7 box holding a 5x5 truth, a 7x7
+    box inside a 9x9 one, or one moved 3 cells along one axis do; one moved 3 cells along
+    both axes (16 of 49 columns shared) does not."""
+    if a is None or b is None:
+        return False
+    di = min(a[1], b[1]) - max(a[0], b[0]) + 1
+    dj = min(a[3], b[3]) - max(a[2], b[2]) + 1
+    shared = max(di, 0) * max(dj, 0)
+    size = lambda x: (x[1] - x[0] + 1) * (x[3] - x[2] + 1)  # noqa: E731
+    return shared >= 0.5 * size(a) and shared >= 0.5 * size(b)
+
+
+def _box(cause: dict):
+    """The box of a cause (its parameter's, in the cause's ``machine`` record)."""
+    return (((cause.get("machine") or {}).get("parameter") or {}).get("box")
+            or cause.get("box"))
+
+
 def names(cause: dict, effect: HiddenEffect) -> bool:
     """Does ``cause`` (a ranked or accepted cause of a diagnosis) name ``effect``? Its kind,
-    and where the kind names one, the same well (well skin, regional permeability), layer
-    (layer and vertical permeability) or candidate (fault plane, aquifer item, relperm
-    table). A generated effect (:mod:`hmcore.diagnosis.generators`), which no candidate
-    matches exactly: its family, naming the wells it expects (``expect_wells``: all;
-    ``expect_any_wells``: one of them)."""
+    and where the kind names one, the same well (well skin), box (regional permeability: the
+    two boxes mostly coincide, :func:`boxes_agree` - the ranking also tries boxes moved beside
+    a well, so a well's name alone does not say where), layer (layer and vertical
+    permeability) or candidate (fault plane, aquifer item, relperm table). A generated effect
+    (:mod:`hmcore.diagnosis.generators`), which no candidate matches exactly: its family,
+    naming the wells it expects (``expect_wells``), or for a region, its box as above."""
     h = effect.candidate
     if cause["kind"] != h.kind:
         return False
@@ -421,12 +440,13 @@ def names(cause: dict, effect: HiddenEffect) -> bool:
         got = cause.get("start_day")
         if got is None or abs(float(got) - float(start)) > START_TOLERANCE_DAYS:
             return False
+    if h.kind == "regional_permeability":  # where the box lies, not which well labels it
+        return boxes_agree(_box(cause), h.parameter.box)
     if effect.generated:
-        ids, any_of = h.details.get("expect_ids"), h.details.get("expect_any_wells")
+        ids = h.details.get("expect_ids")
         return set(h.details.get("expect_wells") or []) <= set(cause["wells"]) and \
-            (not any_of or bool(set(any_of) & set(cause["wells"]))) and \
             (not ids or cause["id"] in ids)
-    if h.kind in ("well_skin", "regional_permeability"):
+    if h.kind == "well_skin":
         return cause["wells"] == list(h.wells)
     if h.kind in ("layer_permeability", "vertical_permeability"):
         return cause["layers"] == list(h.layers)

@@ -65,15 +65,26 @@ def diagnose_window(case: Case, evaluate_batch: EvaluateBatch, settings: Diagnos
     p = forward.plan(d, doc)
     if isinstance(p, str):
         doc["rounds"], doc["no_second_round"] = [], p
-        return Outcome(doc, d, None)
+        return Outcome(_incomplete(doc, d), d, None)
     try:
         doc2 = run_round(p.diagnosis, lambda: forward.start_round(p, d), on_step,
                          f"{prefix}2-")
     except RuntimeError as exc:  # e.g. a calibration that failed: round 1's answer stands
         doc["rounds"], doc["no_second_round"] = [], f"round 2 failed: {exc}"
-        return Outcome(doc, d, None)
+        return Outcome(_incomplete(doc, d), d, None)
     doc, final = forward.combine(d, doc, p, doc2)
     return Outcome(doc, d, final)
+
+
+def _incomplete(doc: dict, d: Diagnosis) -> dict:
+    """Round 1's answer without a round 2: the verdict says when its selected cause still
+    leaves the held-back history beyond noise (:func:`forward.remaining_text`)."""
+    sel = doc.get("selected")
+    if sel and sel["id"] in d.confirmed:
+        doc["verdict"] += forward.remaining_text(d.confirmed[sel["id"]]["ssr_heldout_after"],
+                                                 d.obs.n_noise("heldout"), d.settings,
+                                                 sel["id"])
+    return doc
 
 
 def diagnose_all(case: Case, evaluate_batch: EvaluateBatch, *, calibrated: dict | None = None,

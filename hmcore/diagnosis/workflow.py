@@ -65,6 +65,8 @@ from hmcore.evaluation import score_responses
 from hmcore.results import natural_key
 
 EvaluateBatch = Callable[[Case, list[dict[str, float]], str], list[Any]]
+REGIONS_PER_WELL = 2
+"""Regional boxes of one well (centred or moved) recalibrated at most: the best two by chi2."""
 
 
 # ============================================================================= budget
@@ -426,8 +428,9 @@ class Diagnosis:
 
     def _shifted(self, result: screening.Screening, reserved: int) -> list[Candidate]:
         """The moved boxes of the strongest regional candidates beyond noise (at most
-        ``settings.region_shifts`` wells), when the budget leaves room for their probes
-        besides ``reserved`` others."""
+        ``settings.region_shifts`` wells, the strongest first), as many wells' as the budget
+        leaves room for besides ``reserved`` other probes and a first step of the
+        recalibration (a finite difference per parameter for ``confirm_top`` candidates)."""
         s = self.settings
         if "regional_permeability" not in s.kinds or s.region_shifts < 1:
             return []
@@ -437,19 +440,21 @@ class Diagnosis:
                     by_id[k].details][: s.region_shifts]
         taken = [tuple(c.parameter.box) for c in self.candidates
                  if c.kind == "regional_permeability" and c.parameter.box]
+        left = self.left(reserved + s.confirm_top * (self.coords.dim + 2))
         out: list[Candidate] = []
         for k in regional:
-            moved = shifted_regions(self.case.info, by_id[k].wells[0], taken)
+            moved = [c for c in shifted_regions(self.case.info, by_id[k].wells[0], taken)
+                     if c.name not in self.case.space.names]
+            if left is not None and len(out) + len(moved) > left:
+                self.log(f"ranking: the moved boxes beside {by_id[k].wells[0]} not probed: "
+                         f"{len(moved)} runs, {max(left - len(out), 0)} left of the budget "
+                         "after the recalibration's first step")
+                break
             taken += [tuple(c.parameter.box) for c in moved]
-            out += [c for c in moved if c.name not in self.case.space.names]
-        left = self.left(reserved)
-        if left is not None and len(out) > left:
-            self.log(f"ranking: the moved boxes of {', '.join(regional)} not probed: "
-                     f"{len(out)} runs, {left} left of the budget")
-            return []
+            out += moved
         if out:
             self.log(f"ranking: {len(out)} moved boxes beside "
-                     f"{', '.join(by_id[k].wells[0] for k in regional)}")
+                     f"{', '.join(sorted({c.wells[0] for c in out}, key=natural_key))}")
         return out
 
     def _date(self, result: screening.Screening, r0: np.ndarray
@@ -484,7 +489,14 @@ class Diagnosis:
     def extend(self) -> dict:
         """The extended models of the leading candidates (no simulation)."""
         by_id = {c.id: c for c in self.candidates}
-        screened = self.ranking["screened"]
+        screened, per_well = [], {}
+        for k in self.ranking["screened"]:  # best first; a well's boxes are near-alternatives:
+            c = by_id[k]  # its best two go on, so that they do not fill every slot
+            if c.kind == "regional_permeability":
+                per_well[c.wells] = per_well.get(c.wells, 0) + 1
+                if per_well[c.wells] > REGIONS_PER_WELL:
+                    continue
+            screened.append(k)
         top = screening.confirm_choice([(k, self.scores[k].chi2) for k in screened],
                                        self.settings)
         models = []
