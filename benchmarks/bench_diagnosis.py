@@ -24,7 +24,10 @@ selected, held-back misfit improved. Controls hide nothing and must report ``non
 (each effect named by an accepted cause, its family and wells; an effect of no family:
 ``unexplained``, or ``none`` when the fitted history hardly shows it).
 ``--jsonl FILE``: one line per case, appended as each ends; a rerun skips the cases the file
-already holds (a sweep runs in slices across sessions). ``--table FILE...``: the markdown
+already holds (a sweep runs in slices across sessions). ``--keep DIR``: each case's hidden
+effect, report and diagnosis JSON (gzipped) copied to ``DIR/<case>-<kind>-<seed>/``;
+``--rejudge --jsonl FILE --keep DIR`` judges the rows again from them (after a change of the
+judge, not of the diagnosis). ``--table FILE...``: the markdown
 table of such files (docs/diagnosis.md). Nothing is asserted.
 """
 
@@ -49,8 +52,7 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
         history_end: float = 2200.0, record_end: float = 2936.0) -> dict:
     from hmcore.case import load_case
     from hmcore.diagnosis import diagnose, local_evaluator
-    from hmcore.diagnosis.hidden import (judge, judge_effects, load_hidden_effects,
-                                         write_hidden_deck_case, write_hidden_synthetic_case)
+    from hmcore.diagnosis.hidden import write_hidden_deck_case, write_hidden_synthetic_case
 
     tmp = root / f"{case}-{kind or 'control'}-{seed}"
     t0 = time.perf_counter()
@@ -72,27 +74,80 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
     doc = diagnose(load_case(toml), local_evaluator(tmp / "runs", workers), out_dir=tmp / "out")
     wall = time.perf_counter() - t0
     shutil.rmtree(tmp / "runs", ignore_errors=True)
-    signal = (json.loads((tmp / "case" / "hidden_effect.json").read_text()).get("signal")
-              if case != "punq-real" else None) or {}
-    effects = (load_hidden_effects(tmp / "case" / "hidden_effect.json")
-               if case != "punq-real" else [])
-    generated = any(e.generated for e in effects) or len(effects) > 1
-    out = (judge_effects(doc, effects, signal) if generated else judge(doc, effect, signal)
-           ) if case != "punq-real" else {
-        "ranking": [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:5]
-                    if c["chi2"] is not None], "verdict": doc["verdict"], "gain": doc["gain"]}
-    out.update({"signal_fit": signal.get("chi2_fit"), "signal_heldout": signal.get("chi2_heldout"),
-                "signal_fit_after_globals": signal.get("chi2_fit_after_globals"),
-                "visible": signal.get("visible_in_fitted_history")})
+    if case != "punq-real":
+        out = judged(doc, tmp / "case" / "hidden_effect.json")
+    else:
+        out = {"ranking": [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:5]
+                           if c["chi2"] is not None], "verdict": doc["verdict"],
+               "gain": doc["gain"], "hidden_values": {}}
     out["accepted_gains"] = [{"id": a["id"], "round": a["round"], **a["gain"]}
                              for a in doc.get("accepted") or []]
     out["named_on"] = doc.get("named_on")
-    out["hidden_values"] = {e.candidate.id: e.value for e in effects}
     out.update({"case": case, "kind": kind or "control", "seed": seed, "wall_s": wall,
                 "commit": _commit(),
                 "simulations": doc["cost"]["simulations"], "out": str(tmp / "out"),
                 "selected": out.get("selected", doc["selected"] and doc["selected"]["id"])})
     return out
+
+
+def judged(doc: dict, hidden_path: Path) -> dict:
+    """The judgement of a diagnosis ``doc`` against the hidden effect(s) of ``hidden_path``
+    (:func:`hmcore.diagnosis.hidden.judge_effects` for generated or several effects,
+    :func:`~hmcore.diagnosis.hidden.judge` for one library effect), with the effect's signal."""
+    from hmcore.diagnosis.hidden import judge, judge_effects, load_hidden_effects
+
+    signal = json.loads(hidden_path.read_text()).get("signal") or {}
+    effects = load_hidden_effects(hidden_path)
+    generated = any(e.generated for e in effects) or len(effects) > 1
+    out = (judge_effects(doc, effects, signal) if generated
+           else judge(doc, effects[0] if effects else None, signal))
+    out.update({"signal_fit": signal.get("chi2_fit"), "signal_heldout": signal.get("chi2_heldout"),
+                "signal_fit_after_globals": signal.get("chi2_fit_after_globals"),
+                "visible": signal.get("visible_in_fitted_history"),
+                "hidden_values": {e.candidate.id: e.value for e in effects}})
+    return out
+
+
+
+def keep(row: dict, into: Path) -> Path:
+    """Copy a case's evidence - its hidden effect, the diagnosis report and its JSON
+    (gzipped) - to ``into/<case>-<kind>-<seed>/``, so the sweep can be judged again
+    (``--rejudge``) and read after the temporary folders are gone."""
+    import gzip
+
+    out = Path(row["out"])
+    dest = into / f"{row['case']}-{row['kind']}-{row['seed']}"
+    dest.mkdir(parents=True, exist_ok=True)
+    hidden = out.parent / "case" / "hidden_effect.json"
+    if hidden.is_file():
+        shutil.copy2(hidden, dest / "hidden_effect.json")
+    if (out / "report.md").is_file():
+        shutil.copy2(out / "report.md", dest / "report.md")
+    if (out / "diagnosis.json").is_file():
+        with gzip.open(dest / "diagnosis.json.gz.tmp", "wb", compresslevel=9) as fh:
+            fh.write((out / "diagnosis.json").read_bytes())
+        (dest / "diagnosis.json.gz.tmp").replace(dest / "diagnosis.json.gz")
+    return dest
+
+
+def rejudge(jsonl: Path, kept: Path) -> int:
+    """Judge every row of ``jsonl`` again from its kept evidence (after a change of the judge,
+    not of the diagnosis) and rewrite the file (atomically). Returns the rows judged."""
+    import gzip
+
+    rows, n = _read_jsonl(jsonl), 0
+    for r in rows:
+        dest = kept / f"{r['case']}-{r['kind']}-{r['seed']}"
+        if r.get("error") or not (dest / "diagnosis.json.gz").is_file() or \
+                not (dest / "hidden_effect.json").is_file():
+            continue
+        doc = json.loads(gzip.decompress((dest / "diagnosis.json.gz").read_bytes()))
+        r.update(judged(doc, dest / "hidden_effect.json"))
+        n += 1
+    tmp = jsonl.with_suffix(".tmp")
+    tmp.write_text("".join(json.dumps(r, default=str) + "\n" for r in rows))
+    tmp.replace(jsonl)
+    return n
 
 
 def _commit() -> str | None:
@@ -117,6 +172,16 @@ def _fmt(x, spec: str = ".3g") -> str:
     return "-" if x is None else format(x, spec)
 
 
+def _found(r: dict) -> str:
+    """yes / no; for an effect the fitted history hardly shows (``visible`` false: its signal,
+    once the globals absorb what they can, under the line), ``none`` is right too."""
+    if r.get("found"):
+        return "yes"
+    if r.get("visible") is False:
+        return "invisible: none (right)" if not r.get("accepted") else "invisible: wrong name"
+    return "no"
+
+
 def table(rows: list[dict]) -> str:
     """The markdown table of sweep rows: one line per case, then one per (case, kind)."""
     lines = ["| case | kind | seed | hidden (value) | signal chi2 fit / after globals | "
@@ -136,15 +201,17 @@ def table(rows: list[dict]) -> str:
             f"| {r['case']} | {r['kind']} | {r['seed']} | {hidden or '-'} | "
             f"{_fmt(r.get('signal_fit'), '.0f')} / {_fmt(r.get('signal_fit_after_globals'), '.0f')}"
             f" | {answer}; first {first} ({win}) | {gains} | "
-            f"{'yes' if r.get('found') else 'no'} | {r.get('simulations', '-')} | "
+            f"{_found(r)} | {r.get('simulations', '-')} | "
             f"{_fmt((r.get('wall_s') or 0) / 60, '.1f')} |")
-    lines += ["", "| case | kind | cases | visible | found | mean simulations |",
-              "|---|---|---|---|---|---|"]
+    lines += ["", "| case | kind | cases | visible | found (of the visible) | right answers "
+                  "(none on an invisible one counts) | mean simulations |",
+              "|---|---|---|---|---|---|---|"]
     for key in dict.fromkeys((r["case"], r["kind"]) for r in rows):
         sub = [r for r in rows if (r["case"], r["kind"]) == key]
-        n = len(sub)
-        lines.append(f"| {key[0]} | {key[1]} | {n} | {sum(bool(r.get('visible')) for r in sub)}"
-                     f"/{n} | {sum(bool(r.get('found')) for r in sub)}/{n} | "
+        n, seen = len(sub), [r for r in sub if r.get("visible") is not False]
+        right = sum(_found(r) in ("yes", "invisible: none (right)") for r in sub)
+        lines.append(f"| {key[0]} | {key[1]} | {n} | {len(seen)}/{n} | "
+                     f"{sum(bool(r.get('found')) for r in seen)}/{len(seen)} | {right}/{n} | "
                      f"{sum(r.get('simulations', 0) for r in sub) / n:.0f} |")
     return "\n".join(lines) + "\n"
 
@@ -166,6 +233,10 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--jsonl", type=Path, help="append one line per case; skip those it holds")
     ap.add_argument("--table", type=Path, nargs="+", help="print the table of these JSONL files")
+    ap.add_argument("--keep", type=Path, help="copy each case's hidden effect, report and "
+                                              "diagnosis JSON (gzipped) into this folder")
+    ap.add_argument("--rejudge", action="store_true", help="judge the rows of --jsonl again "
+                    "from the evidence in --keep, and rewrite the file")
     ap.add_argument("--history-end", type=float, default=2200.0,
                     help="punq: days fitted (0: 75 %% of the record, as `hmflow hide`)")
     ap.add_argument("--record-end", type=float, default=2936.0,
@@ -173,6 +244,11 @@ def main() -> None:
     args = ap.parse_args()
     if args.table:
         print(table([r for f in args.table for r in _read_jsonl(f)]), end="")
+        return
+    if args.rejudge:
+        if not (args.jsonl and args.keep):
+            ap.error("--rejudge needs --jsonl and --keep")
+        print(f"judged again: {rejudge(args.jsonl, args.keep)} rows of {args.jsonl}")
         return
     kinds = (list(KINDS) if args.kinds == ["all"] else
              list(GENERATORS) if args.kinds == ["generators"] else args.kinds)
@@ -197,6 +273,8 @@ def main() -> None:
                                                    "visible", "wall_s",
                                                    "simulations", "ranking", "error")},
                          default=str), flush=True)
+        if args.keep and not row.get("error"):
+            keep(row, args.keep)
         if args.json:
             args.json.write_text(json.dumps(rows, indent=2, default=str))
         if args.jsonl:

@@ -5,6 +5,8 @@ simulator."""
 
 from __future__ import annotations
 
+import json
+
 from pathlib import Path
 
 import pytest
@@ -61,6 +63,9 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     from hmcore.diagnosis.hidden import boxes_agree
 
     assert boxes_agree(b, b) and not boxes_agree(b, None)
+    assert boxes_agree((1, 7, 1, 7), (2, 6, 2, 6)) and boxes_agree((1, 7, 1, 7), (4, 10, 1, 7))
+    assert boxes_agree((6, 12, 2, 8), (9, 13, 5, 9))  # 16 shared of 58: 0.28
+    assert not boxes_agree((1, 7, 1, 7), (4, 10, 4, 10))  # 16 of 82
     centred = next(c.parameter.box for c in library if c.id ==
                    f"regional_permeability:{region.candidate.wells[0]}")
     assert not boxes_agree(centred, b)  # the box centred on the well is not the truth's
@@ -136,11 +141,12 @@ def test_the_judge_asks_each_effect_its_family_and_wells(synthetic):
                 "machine": {"parameter": {"box": list(box)}}}
 
     right = regional((i0 - 1, i1 + 1, j0 - 1, j1 + 1, 1, 5))  # a box around the truth's
-    moved = regional((i0 + 3, i1 + 3, j0, j1, 1, 5), ("X",))  # along one axis: most shared
-    wrong = regional((i0 + 3, i1 + 3, j0 + 3, j1 + 3, 1, 5))  # the same well, both axes off
+    moved = regional((i0 + 3, i1 + 3, j0, j1, 1, 5), ("X",))  # along one axis
+    w = i1 - i0 + 1
+    wrong = regional((i0 + w - 2, i1 + w - 2, j0 + w - 2, j1 + w - 2, 1, 5))  # a corner shared
     assert judge_effects(_doc([right]), [region])["found"]
     assert judge_effects(_doc([moved]), [region])["found"] == \
-        ((i1 - i0 + 1) - 3 >= 0.5 * (i1 - i0 + 1))  # a well's label does not decide
+        ((w - 3) * w >= 0.25 * (w * w + 3 * w))  # a well's label does not decide
     assert not judge_effects(_doc([wrong]), [region])["found"]
     assert not judge_effects(_doc([right], after=0.03), [region])["found"]  # held back worse
     (contact,) = generate("contact", 1, info, space, truth)
@@ -168,6 +174,44 @@ def test_the_judge_asks_each_effect_its_family_and_wells(synthetic):
     skin = {"id": f"well_skin:{w}", "kind": "well_skin", "wells": [w], "layers": [],
             "chi2": 60.0, "start_day": None}  # the well, but a skin it always had
     assert not judge_effects(_doc([skin]), [dated])["found"]
+
+
+def test_a_sweep_row_is_judged_again_from_its_kept_evidence(synthetic, tmp_path):
+    """`bench_diagnosis.py --keep` copies a case's evidence; `--rejudge` judges the rows again
+    from it (after a change of the judge), and the table counts `none` on an effect the
+    fitted history does not show as right."""
+    import gzip
+
+    from hmcore.diagnosis.generators import generate
+
+    info, truth = synthetic
+    (region,) = generate("offcentre_region", 1, info, ParameterSpace.reference(), truth)
+    i0, i1, j0, j1 = region.parameter.box[:4]
+    cause = {"id": "regional_permeability:X", "kind": "regional_permeability", "wells": ["X"],
+             "layers": [], "chi2": 80.0, "machine": {"parameter": {"box": [i0, i1, j0, j1]}}}
+    accepted = {k: v for k, v in cause.items() if k != "machine"}  # as diagnosis.json has it
+    out = tmp_path / "run" / "out"
+    out.mkdir(parents=True)
+    (out / "diagnosis.json").write_text(json.dumps({**_doc([accepted]), "causes": [cause]}))
+    (out / "report.md").write_text("# Diagnosis")
+    (out.parent / "case").mkdir()
+    (out.parent / "case" / "hidden_effect.json").write_text(json.dumps(
+        {"effects": [region.to_dict()], "signal": {"visible_in_fitted_history": True}}))
+    bench = _bench()
+    row = {"case": "synthetic", "kind": "offcentre_region", "seed": 1, "found": False,
+           "out": str(out)}
+    kept = bench.keep(row, tmp_path / "kept")
+    assert json.loads(gzip.decompress((kept / "diagnosis.json.gz").read_bytes()))["causes"]
+    jsonl = tmp_path / "sweep.jsonl"
+    jsonl.write_text(json.dumps(row) + "\n" + json.dumps(
+        {**row, "seed": 2, "visible": False, "accepted": []}) + "\n")
+    assert bench.rejudge(jsonl, tmp_path / "kept") == 1  # seed 2 has no evidence kept
+    rows = bench._read_jsonl(jsonl)
+    assert rows[0]["found"] and rows[0]["named"] == {region.candidate.id: True}
+    assert not rows[1]["found"]
+    text = bench.table(rows)
+    assert "| yes |" in text and "invisible: none (right)" in text
+    assert "| synthetic | offcentre_region | 2 | 1/2 | 1/1 | 2/2 |" in text
 
 
 # ============================================================================= slow sweep

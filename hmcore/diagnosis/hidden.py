@@ -402,18 +402,25 @@ def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=No
 
 
 # ----------------------------------------------------------------------------- scoring a finding
+BOX_AGREEMENT = 0.25
+"""Least Jaccard index (columns in both boxes over columns in either) at which a named region
+is the hidden one (:func:`boxes_agree`)."""
+
+
 def boxes_agree(a, b) -> bool:
-    """Do two boxes of columns (i0, i1, j0, j1, ...; 1-based, inclusive) mostly coincide: at
-    least half of each one's columns inside the other? A 7x7 box holding a 5x5 truth, a 7x7
-    box inside a 9x9 one, or one moved 3 cells along one axis do; one moved 3 cells along
-    both axes (16 of 49 columns shared) does not."""
+    """Do two boxes of columns (i0, i1, j0, j1, ...; 1-based, inclusive) lie in the same
+    place: do they share at least :data:`BOX_AGREEMENT` of the columns either covers? A 7x7
+    box holding a 5x5 one (0.51), one moved 3 cells along one axis (0.40) or a 7x7 box sharing
+    4 x 4 columns with a 5x5 one (0.28) do; a 7x7 box moved 3 cells along both axes (0.20), or
+    centred on a well while a 9x9 one is centred 3 cells off it in i and j (0.24), do not. With
+    a handful of wells the data locate a region to a few cells, not to the cell."""
     if a is None or b is None:
         return False
     di = min(a[1], b[1]) - max(a[0], b[0]) + 1
     dj = min(a[3], b[3]) - max(a[2], b[2]) + 1
     shared = max(di, 0) * max(dj, 0)
     size = lambda x: (x[1] - x[0] + 1) * (x[3] - x[2] + 1)  # noqa: E731
-    return shared >= 0.5 * size(a) and shared >= 0.5 * size(b)
+    return shared >= BOX_AGREEMENT * (size(a) + size(b) - shared)
 
 
 def _box(cause: dict):
@@ -422,11 +429,20 @@ def _box(cause: dict):
             or cause.get("box"))
 
 
+def _described(cause: dict, doc: dict) -> dict:
+    """``cause`` with its ``machine`` record, from the diagnosis's ranked causes when it has
+    none (an accepted or selected cause carries its id, not its parameter)."""
+    if cause.get("machine"):
+        return cause
+    ranked = next((c for c in doc.get("causes") or [] if c.get("id") == cause.get("id")), {})
+    return {**cause, "machine": ranked.get("machine")}
+
+
 def names(cause: dict, effect: HiddenEffect) -> bool:
     """Does ``cause`` (a ranked or accepted cause of a diagnosis) name ``effect``? Its kind,
-    and where the kind names one, the same well (well skin), box (regional permeability: the
-    two boxes mostly coincide, :func:`boxes_agree` - the ranking also tries boxes moved beside
-    a well, so a well's name alone does not say where), layer (layer and vertical
+    and where the kind names one, the same well (well skin), place (regional permeability: the
+    two boxes overlap, :func:`boxes_agree` - the ranking also tries boxes moved beside a well,
+    so a well's name alone does not say where), layer (layer and vertical
     permeability) or candidate (fault plane, aquifer item, relperm table). A generated effect
     (:mod:`hmcore.diagnosis.generators`), which no candidate matches exactly: its family,
     naming the wells it expects (``expect_wells``), or for a region, its box as above."""
@@ -467,7 +483,8 @@ def judge_effects(doc: dict, effects: list[HiddenEffect], signal: dict | None = 
     invisible = not (signal or {}).get("visible_in_fitted_history", True)
     no_family = ("unexplained", "none") if invisible else ("unexplained",)
     named = {e.candidate.id: (first["kind"] in no_family if e.kind == "unexplained"
-                              else any(names(a, e) for a in accepted)) for e in effects}
+                              else any(names(_described(a, doc), e) for a in accepted))
+             for e in effects}
     g = doc["gain"]
     held = g["heldout_after"] is not None and g["heldout_before"] is not None and \
         g["heldout_after"] < g["heldout_before"]
@@ -508,7 +525,9 @@ def judge(doc: dict, effect: HiddenEffect | None, signal: dict | None = None) ->
                 "found": ok, "ranking": top, "verdict": doc["verdict"]}
     h = effect.candidate
     same = names(first, effect)
-    sel = doc["selected"] is not None and doc["selected"]["id"] == h.id
+    sel = doc["selected"] is not None and (  # the same candidate, or for a region the place
+        doc["selected"]["id"] == h.id or (h.kind == "regional_permeability"
+                                          and names(_described(doc["selected"], doc), effect)))
     held_e = (g["heldout_after"] is not None and g["heldout_before"] is not None
               and g["heldout_after"] < g["heldout_before"])
     truth_e = (signal or {}).get("truth_E_heldout")
