@@ -104,6 +104,7 @@ def judged(doc: dict, hidden_path: Path) -> dict:
     out.update({"signal_fit": signal.get("chi2_fit"), "signal_heldout": signal.get("chi2_heldout"),
                 "signal_fit_after_globals": signal.get("chi2_fit_after_globals"),
                 "visible": signal.get("visible_in_fitted_history"),
+                "truth_E_heldout": signal.get("truth_E_heldout"),
                 "hidden_values": {e.candidate.id: e.value for e in effects}})
     return out
 
@@ -174,11 +175,18 @@ def _fmt(x, spec: str = ".3g") -> str:
 
 def _found(r: dict) -> str:
     """yes / no; for an effect the fitted history hardly shows (``visible`` false: its signal,
-    once the globals absorb what they can, under the line), ``none`` is right too."""
+    once the globals absorb what they can, under the line), ``none`` is right too. A wrong
+    answer whose model predicts the held-back history about as well as the truth (E within
+    10 % of the truth's) is marked so: the data do not tell the two apart."""
     if r.get("found"):
         return "yes"
     if r.get("visible") is False:
         return "invisible: none (right)" if not r.get("accepted") else "invisible: wrong name"
+    gains, truth = r.get("accepted_gains") or [], r.get("truth_E_heldout")
+    if gains and truth and gains[-1]["heldout_after"] is not None \
+            and gains[-1]["heldout_after"] <= 1.1 * truth:
+        return (f"no: another model as good as the truth (held-back E "
+                f"{gains[-1]['heldout_after'] / truth:.2f}x the truth's)")
     return "no"
 
 
