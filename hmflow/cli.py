@@ -989,7 +989,8 @@ def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json
                           f"({e.candidate.description}); a right answer: {e.kind}"
                           + (f" at {', '.join(e.candidate.details['expect_wells'])}"
                              if e.candidate.details.get("expect_wells") else "")
-                          + (" whose box mostly coincides with cells i {}-{}, j {}-{}".format(
+                          + (" over cells i {}-{}, j {}-{} (sharing a quarter or more of "
+                             "the columns the two boxes cover)".format(
                               *e.parameter.box[:4]) if e.kind == "regional_permeability"
                              and e.parameter.box else "")
                           + f" - {'[green]named[/]' if j['named'][e.candidate.id] else '[red]not named[/]'}")
