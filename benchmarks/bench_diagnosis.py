@@ -57,9 +57,9 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
     tmp = root / f"{case}-{kind or 'control'}-{seed}"
     t0 = time.perf_counter()
     if case == "synthetic":
-        toml, effect = write_hidden_synthetic_case(tmp / "case", seed, kind)
+        toml, _ = write_hidden_synthetic_case(tmp / "case", seed, kind)
     elif case == "punq":
-        toml, effect = write_hidden_deck_case(tmp / "case", PUNQ / "PUNQS3.DATA", seed,
+        toml, _ = write_hidden_deck_case(tmp / "case", PUNQ / "PUNQS3.DATA", seed,
                                               truth=PUNQ_TRUTH, kind=kind,
                                               history_end_days=history_end or None,
                                               with_sigma=False, end_days=record_end or None,
@@ -70,7 +70,6 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
         toml.write_text(f'[case]\nname = "punqs3"\ndeck = "{PUNQ / "PUNQS3.DATA"}"\n'
                         f'observed = "{PUNQ / "punqs3_observed_full_history.csv"}"\n'
                         "history_end_days = 2200\n")
-        effect = None
     doc = diagnose(load_case(toml), local_evaluator(tmp / "runs", workers), out_dir=tmp / "out")
     wall = time.perf_counter() - t0
     shutil.rmtree(tmp / "runs", ignore_errors=True)
