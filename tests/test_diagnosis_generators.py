@@ -51,6 +51,13 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     plane = box[0] if box[0] == box[1] else box[2]
     assert min(pos) <= plane < max(pos)  # between producers
     assert fault.parameter.low <= fault.value <= 0.01
+    # a right answer: the library plane that puts the same producers on each side
+    (expect,) = fault.candidate.details["expect_ids"]
+    named = next(c for c in library if c.id == expect)
+    nb = named.parameter.box
+    assert named.parameter.keywords == fault.parameter.keywords
+    other = nb[0] if box[0] == box[1] else nb[2]
+    assert [x <= plane for x in pos] == [x <= other for x in pos]
 
     (region,) = generate("offcentre_region", seed, info, space, truth)
     b = region.parameter.box
@@ -126,6 +133,7 @@ def _doc(accepted, first=None, before=0.02, after=0.01):
 
 
 def test_the_judge_asks_each_effect_its_family_and_wells(synthetic):
+    from hmcore.diagnosis.extensions import build_candidates
     from hmcore.diagnosis.generators import generate
     from hmcore.diagnosis.hidden import judge_effects
 
@@ -149,6 +157,18 @@ def test_the_judge_asks_each_effect_its_family_and_wells(synthetic):
         ((w - 3) * w >= 0.25 * (w * w + 3 * w))  # a well's label does not decide
     assert not judge_effects(_doc([wrong]), [region])["found"]
     assert not judge_effects(_doc([right], after=0.03), [region])["found"]  # held back worse
+    (fault,) = generate("partial_fault", 1, info, space, truth)
+    (right_plane,) = fault.candidate.details["expect_ids"]
+
+    def plane(cid):
+        return {"id": cid, "kind": "fault_transmissibility", "wells": [], "layers": [],
+                "chi2": 40.0}
+
+    assert judge_effects(_doc([plane(right_plane)]), [fault])["found"]
+    others = [c.id for c in build_candidates(info, space, truth, ("fault_transmissibility",))
+              if c.id != right_plane]
+    assert others and not any(judge_effects(_doc([plane(o)]), [fault])["found"]
+                              for o in others)  # a plane that parts other wells
     (contact,) = generate("contact", 1, info, space, truth)
     unexplained = {"id": "unexplained", "kind": "unexplained", "wells": ["PROD1"], "layers": [],
                    "chi2": None}

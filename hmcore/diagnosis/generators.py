@@ -9,8 +9,10 @@ generators draw, from a seed:
 ==================== ===================================================== ==================
 generator            the truth hides                                        a right answer
 ==================== ===================================================== ==================
-``partial_fault``    MULTX/MULTY on part of a plane (40-60 % of its        the fault family
-                     length) between producers, off the library's midlines
+``partial_fault``    MULTX/MULTY on part of a plane (40-60 % of its        the library plane
+                     length) between producers, off the library's midlines that parts the
+                                                                            producers the
+                                                                            same way
 ``offcentre_region`` a permeability box of 5x5, 7x7 or 9x9 columns         the regional family,
                      centred 3-4 cells off a well in both i and j (never    a box that mostly
                      one of the library's boxes, centred or moved)          coincides with it
@@ -93,17 +95,25 @@ def _partial_fault(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidat
     cols = [well_column(info, w) for w in info.producers]
     choices = []
     for axis, keyword in (("i", "MULTX"), ("j", "MULTY")):
-        library = {c.parameter.box[0] if axis == "i" else c.parameter.box[2]
+        library = {c.parameter.box[0] if axis == "i" else c.parameter.box[2]: c.id
                    for c in build_candidates(info, space, {}, ("fault_transmissibility",))
                    if c.parameter.keywords == (keyword,)}
         pos = [c[0] if axis == "i" else c[1] for c in cols]
-        # planes with producers on both sides (a barrier between wells), off the midlines
-        choices += [(axis, keyword, p) for p in range(min(pos), max(pos))
-                    if p not in library]
+
+        def side(plane: int) -> frozenset[int]:
+            """The producers (by column) on the low side of the plane plane | plane + 1."""
+            return frozenset(k for k, x in enumerate(pos) if x <= plane)
+
+        # planes with producers on both sides (a barrier between wells), off the midlines;
+        # a right answer is the library plane that parts the producers the same way
+        for p in range(min(pos), max(pos)):
+            same = [cid for q, cid in library.items() if side(q) == side(p)]
+            if p not in library and same:
+                choices.append((axis, keyword, p, same))
     if not choices:
         raise ValueError(f"the deck {info.path} has no plane between producers off the "
                          "library's midlines for a partial fault")
-    axis, keyword, p0 = choices[int(rng.integers(len(choices)))]
+    axis, keyword, p0, same = choices[int(rng.integers(len(choices)))]
     n_along = ny if axis == "i" else nx
     length = max(2, int(round(rng.uniform(0.4, 0.6) * n_along)))
     start = int(rng.integers(1, n_along - length + 2))
@@ -117,7 +127,8 @@ def _partial_fault(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidat
                   "fault_transmissibility", p, (), (),
                   f"a sealing fault on the plane {axis} = {p0} | {p0 + 1}, over {other} = "
                   f"{span[0]}-{span[1]} only (off the library's midline planes)",
-                  details={"generated": "partial_fault", "expect_wells": []})
+                  details={"generated": "partial_fault", "expect_wells": [],
+                           "expect_ids": sorted(same)})
     return c, _log_uniform(rng, 1e-3, 1e-2)
 
 
