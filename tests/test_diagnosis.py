@@ -517,7 +517,9 @@ def test_an_effect_the_library_holds_in_part_is_named_by_its_nearest_candidate(
     curve's end point moved (``relperm_endpoint``). The hidden signature is 0.8 that of the
     candidate a right answer names (the plane that parts the producers the same way; the krw
     exponent) and 0.6 one of its own, which no candidate holds: that candidate is named and
-    accepted, and the generator's own judge says found. Where the part no candidate holds
+    accepted, and the generator's own judge says found. (Which candidate that is - the
+    generator's ``expect_ids`` - is taken as given here; that it parts the producers as the
+    hidden plane does is tested with the generators.) Where the part no candidate holds
     stays beyond noise (the barrier; the end point's is weaker and the globals absorb it),
     the verdict says that something no family explains remains (issue 18, point 3)."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose

@@ -445,7 +445,9 @@ def names(cause: dict, effect: HiddenEffect) -> bool:
     so a well's name alone does not say where), layer (layer and vertical
     permeability) or candidate (fault plane, aquifer item, relperm table). A generated effect
     (:mod:`hmcore.diagnosis.generators`), which no candidate matches exactly: its family,
-    naming the wells it expects (``expect_wells``), or for a region, its box as above."""
+    naming the wells it expects (``expect_wells``) and, where it lists them, being one of
+    ``expect_ids`` (a partial fault: the library plane that parts the producers the same way),
+    or for a region, its box as above."""
     h = effect.candidate
     if cause["kind"] != h.kind:
         return False
