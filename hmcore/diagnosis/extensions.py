@@ -164,6 +164,14 @@ def well_column(info: DeckInfo, well: str) -> tuple[int, int]:
     return i, j
 
 
+def wells_below(info: DeckInfo, axis: str, plane: int) -> list[str]:
+    """The producers on the low side of the plane ``plane | plane + 1`` along ``axis`` ("i" or
+    "j"), in natural order."""
+    k = 0 if axis == "i" else 1
+    return sorted((w for w in info.producers if well_column(info, w)[k] <= plane),
+                  key=natural_key)
+
+
 # ----------------------------------------------------------------------------- families
 def _has_global(space: ParameterSpace, keyword: str) -> bool:
     return any(p.kind == "multiply" and p.box is None and keyword in [k.upper() for k in p.keywords]
@@ -333,10 +341,8 @@ def fault_transmissibility(info: DeckInfo, space: ParameterSpace,
                 box = (p0, p0, 1, ny, 1, nz)
             else:
                 box = (1, nx, p0, p0, 1, nz)
-            side_a = sorted([w for w, c in cols.items() if (c[0] if axis == "i" else c[1]) <= p0],
-                            key=natural_key)
-            side_b = sorted([w for w, c in cols.items() if (c[0] if axis == "i" else c[1]) > p0],
-                            key=natural_key)
+            side_a = wells_below(info, axis, p0)
+            side_b = sorted(set(cols) - set(side_a), key=natural_key)
             words = ("west", "east") if axis == "i" else ("south", "north")
             p = Parameter(name=f"fault_{axis}{p0}", kind="multiply", keywords=(keyword,), box=box,
                           low=FAULT_BOUNDS[0], high=FAULT_BOUNDS[1],

@@ -49,7 +49,7 @@ import numpy as np
 from hmcore.deck_info import DeckInfo
 from hmcore.diagnosis.extensions import (FAULT_BOUNDS, KINDS, PERM_BOUNDS, Candidate,
                                          build_candidates, dated_productivity, shifted_regions,
-                                         well_column)
+                                         well_column, wells_below)
 from hmcore.parameters import Parameter, ParameterSpace
 from hmcore.results import natural_key
 
@@ -99,15 +99,11 @@ def _partial_fault(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidat
                    for c in build_candidates(info, space, {}, ("fault_transmissibility",))
                    if c.parameter.keywords == (keyword,)}
         pos = [c[0] if axis == "i" else c[1] for c in cols]
-
-        def side(plane: int) -> frozenset[int]:
-            """The producers (by column) on the low side of the plane plane | plane + 1."""
-            return frozenset(k for k, x in enumerate(pos) if x <= plane)
-
         # planes with producers on both sides (a barrier between wells), off the midlines;
         # a right answer is the library plane that parts the producers the same way
         for p in range(min(pos), max(pos)):
-            same = [cid for q, cid in library.items() if side(q) == side(p)]
+            same = [cid for q, cid in library.items()
+                    if wells_below(info, axis, q) == wells_below(info, axis, p)]
             if p not in library and same:
                 choices.append((axis, keyword, p, same))
     if not choices:
