@@ -114,7 +114,9 @@ class PiMultiplier:
 
 @dataclass(frozen=True)
 class TableTransform:
-    """Scale (``mode="scale"``) or reshape (``mode="power"``) column ``column`` of tables."""
+    """Scale (``mode="scale"``, capped at 1), reshape (``mode="power"``), move the critical
+    saturation of (``mode="endpoint"``) or multiply (``mode="multiply"``, a fluid table)
+    column ``column`` of tables."""
 
     keyword: str
     column: int
@@ -125,7 +127,8 @@ class TableTransform:
 Edit = (Multiply | SetSkin | ItemMultiply | TableTransform | FaultMultiplier
         | RegionTransmissibility | PiMultiplier)
 GRID_END = (Multiply, FaultMultiplier, RegionTransmissibility)  # written at the end of GRID
-TABLE_COLUMNS = {"SWOF": 4, "SGOF": 4, "SLGOF": 4, "SWFN": 3, "SGFN": 3, "SOF3": 3, "SOF2": 2}
+TABLE_COLUMNS = {"SWOF": 4, "SGOF": 4, "SLGOF": 4, "SWFN": 3, "SGFN": 3, "SOF3": 3, "SOF2": 2,
+                 "RSVD": 2, "PBVD": 2, "RVVD": 2, "PDVD": 2, "PVDG": 3, "PVDO": 3}
 
 
 def edits_for(space: ParameterSpace, values: dict[str, float], info: DeckInfo) -> list[Edit]:
@@ -150,6 +153,8 @@ def _parameter_edits(p: Parameter, value: float, info: DeckInfo) -> list[Edit]:
         return [ItemMultiply(p.keywords[0].upper(), int(p.item), value, p.match)]
     if p.kind == "relperm":
         return [TableTransform(p.keywords[0].upper(), int(p.item or 2), p.mode, value)]
+    if p.kind == "table_multiply":
+        return [TableTransform(p.keywords[0].upper(), int(p.item), "multiply", value)]
     if p.kind == "fault":
         return [FaultMultiplier(tuple(p.faults), value)]
     if p.kind == "wpimult":
@@ -229,11 +234,11 @@ def _rewrite_items(block: Block, edits: list[ItemMultiply], file: Path) -> Block
 
 
 def _rewrite_tables(block: Block, edits: list[TableTransform], file: Path) -> Block:
-    """Saturation tables of ``block.keyword`` with one column scaled or reshaped."""
+    """Tables of ``block.keyword`` (saturation or fluid) with one column transformed."""
     import numpy as np
 
     ncol = TABLE_COLUMNS[block.keyword]
-    new_lines = [block.lines[0], "-- tables rewritten by hmflow (relative permeability)\n"]
+    new_lines = [block.lines[0], "-- tables rewritten by hmflow\n"]
     for rec in _table_records(block.body):
         values = np.array([float(x) for x in expand_repeats(rec)], dtype=float)
         if values.size % ncol:
@@ -244,7 +249,9 @@ def _rewrite_tables(block: Block, edits: list[TableTransform], file: Path) -> Bl
         for e in edits:
             col = table[:, e.column - 1]
             top = col.max()
-            if e.mode == "scale":
+            if e.mode == "multiply":
+                col = col * e.value
+            elif e.mode == "scale":
                 col = np.minimum(col * e.value, 1.0)
             elif e.mode == "endpoint":
                 col = shift_endpoint(table[:, 0], col, e.value)

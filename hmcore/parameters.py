@@ -23,6 +23,10 @@ Kinds (each turns a value into deck edits, see :mod:`hmcore.deck`):
   for krw in SWOF/SWFN, SOWCR for krow, SGCR for krg) by the value, in saturation units,
   stretching the curve between it and its far end point (two-point end-point scaling, applied
   to the table itself; the value may be negative).
+* ``table_multiply`` - multiply column ``item`` (1-based) of every row of every table of
+  ``keywords[0]``, a fluid table (:data:`TABLE_MULTIPLIABLE`): the initial solution gas-oil
+  ratio versus depth (``RSVD`` item 2), the bubble point (``PBVD``), a dry gas's or a dead
+  oil's formation volume factor or viscosity (``PVDG`` / ``PVDO`` items 2 / 3).
 * ``wpimult`` - multiply the productivity index of ``wells``' connections (all producers when
   empty) with ``WPIMULT``, written after every COMPDAT that connects them; with ``start_day``
   only from the first report step at or after that day (a productivity change during the
@@ -51,6 +55,7 @@ class ParameterKind(StrEnum):
     FAULT = "fault"
     MULTREGT = "multregt"
     WPIMULT = "wpimult"
+    TABLE_MULTIPLY = "table_multiply"
 
 
 Bound = Annotated[float, Strict(), AllowInfNan(False)]  # a finite number (TOML true/inf refused)
@@ -60,6 +65,9 @@ RELPERM_COLUMNS = {"SWOF": (2, 3), "SGOF": (2, 3), "SLGOF": (2, 3), "SWFN": (2,)
                    "SOF3": (2, 3), "SOF2": (2,)}  # 1-based columns holding a relative
 # permeability (column 1 is the saturation; SWOF/SGOF/SLGOF's 4th, SWFN/SGFN's 3rd: capillary
 # pressure)
+TABLE_MULTIPLIABLE = {"RSVD": (2,), "PBVD": (2,), "RVVD": (2,), "PDVD": (2,), "PVDG": (2, 3),
+                      "PVDO": (2, 3)}  # 1-based columns a table_multiply may scale (column 1
+# is the depth or the pressure the table is read at)
 GRID_MULTIPLIABLE = ("PORO", "PERMX", "PERMY", "PERMZ", "NTG", "MULTX", "MULTY", "MULTZ",
                      "MULTX-", "MULTY-", "MULTZ-")
 
@@ -101,7 +109,7 @@ class Parameter(BaseModel):
                                  f"allowed keywords are {list(GRID_MULTIPLIABLE)}")
             if self.low <= 0:
                 raise ValueError(f"multiplier '{self.name}' must have low > 0, got low={self.low}")
-        if self.kind in ("item_multiply", "relperm") and len(self.keywords) != 1:
+        if self.kind in ("item_multiply", "relperm", "table_multiply") and len(self.keywords) != 1:
             raise ValueError(f"parameter '{self.name}' of kind '{self.kind}' needs exactly one "
                              f"keyword, got {list(self.keywords)}")
         if self.kind == "item_multiply" and self.item is None:
@@ -117,6 +125,15 @@ class Parameter(BaseModel):
                              f"{self.keywords[0].upper()} is not a relative permeability column; "
                              f"use item = {' or '.join(map(str, columns))} (column 1 is the "
                              "saturation, the others capillary pressure)")
+        if self.kind == "table_multiply" and self.keywords[0].upper() not in TABLE_MULTIPLIABLE:
+            raise ValueError(f"parameter '{self.name}': table_multiply tables are "
+                             f"{list(TABLE_MULTIPLIABLE)}, got {self.keywords[0]!r}")
+        if self.kind == "table_multiply" and self.item not in \
+                TABLE_MULTIPLIABLE[self.keywords[0].upper()]:
+            columns = TABLE_MULTIPLIABLE[self.keywords[0].upper()]
+            raise ValueError(f"parameter '{self.name}': table_multiply needs item = "
+                             f"{' or '.join(map(str, columns))} for {self.keywords[0].upper()} "
+                             f"(the column to multiply), got item = {self.item}")
         if self.region is not None and self.region.upper() not in MULTIREG_REGIONS:
             raise ValueError(f"parameter '{self.name}': region must be one of "
                              f"{list(MULTIREG_REGIONS)} (what MULTIREG and MULTREGT read), got "
@@ -146,7 +163,7 @@ class Parameter(BaseModel):
                 -0.5 < self.low and self.high < 0.5):
             raise ValueError(f"parameter '{self.name}': an end-point shift is a saturation "
                              f"change within (-0.5, 0.5), got [{self.low}, {self.high}]")
-        if (self.kind in ("item_multiply", "wpimult")
+        if (self.kind in ("item_multiply", "wpimult", "table_multiply")
                 or (self.kind == "relperm" and self.mode != "endpoint")) and self.low <= 0:
             raise ValueError(f"parameter '{self.name}' must have low > 0, got low={self.low}")
         if self.start_day is not None and self.kind != "wpimult":

@@ -18,7 +18,8 @@ from hmcore.deck_info import DeckInfo
 from hmcore.eclipse_lexer import expand_repeats, records, split_blocks
 from hmcore.errors import CaseError, Problem
 from hmcore.includes import deck_files
-from hmcore.parameters import RELPERM_COLUMNS, Parameter, ParameterKind, ParameterSpace
+from hmcore.parameters import (RELPERM_COLUMNS, TABLE_MULTIPLIABLE, Parameter, ParameterKind,
+                               ParameterSpace)
 
 OPM_BACKENDS = ("", "opm", "opm-flow")
 PLACEHOLDERS = ("deck", "run_dir", "case", "threads", "processes")
@@ -87,7 +88,7 @@ def parameter_problems(space_params, info: DeckInfo, where: str) -> list[Problem
     """Each parameter acts on the deck: what it names exists (records, items), and applying it
     dry changes the deck text. The per-run deck is rendered once with every parameter at its
     low bound (it must render), and each parameter whose edit depends on the deck (skin,
-    wpimult, item_multiply, relperm) is applied alone at its low and at its high bound: the
+    wpimult, item_multiply, relperm, table_multiply) is applied alone at its low and at its high bound: the
     two texts must differ. (Alone: a parameter that another one overrides, a global skin
     under per-well skins, is not refused.)"""
     problems: list[Problem] = []
@@ -95,7 +96,8 @@ def parameter_problems(space_params, info: DeckInfo, where: str) -> list[Problem
     checked = []
     for p in space_params:
         own: list[Problem] = []
-        if p.kind in (ParameterKind.ITEM_MULTIPLY, ParameterKind.RELPERM):
+        if p.kind in (ParameterKind.ITEM_MULTIPLY, ParameterKind.RELPERM,
+                      ParameterKind.TABLE_MULTIPLY):
             if blocks is None:
                 blocks = _keyword_blocks(info)
             own = (_item_problems(p, blocks, info, where) if p.kind == ParameterKind.ITEM_MULTIPLY
@@ -193,8 +195,9 @@ def _item_problems(p: Parameter, blocks, info: DeckInfo, where: str) -> list[Pro
 def _table_problems(p: Parameter, blocks, info: DeckInfo, where: str) -> list[Problem]:
     keyword = p.keywords[0].upper()
     if not any(b.keyword == keyword for _, b in blocks):
-        tables = sorted({b.keyword for _, b in blocks} & set(RELPERM_COLUMNS))
+        kinds = RELPERM_COLUMNS if p.kind == ParameterKind.RELPERM else TABLE_MULTIPLIABLE
+        tables = sorted({b.keyword for _, b in blocks} & set(kinds))
         return [Problem(f"{where} '{p.name}'", f"the deck has no {keyword} table, so the "
-                        "relperm parameter acts on nothing", f"use a table the deck defines "
+                        f"{p.kind.value} parameter acts on nothing", f"use a table the deck defines "
                         f"({tables or 'none'})")]
     return []

@@ -490,6 +490,24 @@ def test_relperm_on_a_column_that_is_no_relative_permeability_is_refused(tmp_pat
                          r"relative permeability column; use item = 2 or 3")
 
 
+def test_table_multiply_scales_a_fluid_table_and_names_the_column_and_table(tmp_path):
+    """RSVD item 2 (the initial dissolved gas) is scaled row by row; column 1 (the depth) and
+    a table the deck lacks are refused with the columns and the tables it has."""
+    from hmcore.deck import prepare_run_deck
+
+    case = load_case(make_case(tmp_path, extra=_aquct(2, kind="table_multiply", keyword="RSVD")))
+    deck = prepare_run_deck(case.deck, {"aq": 0.5}, case.space, tmp_path / "run",
+                            case.info).read_text()
+    rsvd = deck[deck.index("\nRSVD\n"):].split("/")[0].split()
+    assert [float(x) for x in rsvd[-4:]] == [2175.0, 37.0, 2496.0, 37.0]  # 74 x 0.5, depths kept
+    one_problem_matching(problems_of(make_case(tmp_path, extra=_aquct(
+        1, kind="table_multiply", keyword="RSVD"))), where=r"parameters\.0",
+        what=r"table_multiply needs item = 2 for RSVD")
+    one_problem_matching(problems_of(make_case(tmp_path, extra=_aquct(
+        2, kind="table_multiply", keyword="PVDO"))), where=r"'aq'",
+        what=r"no PVDO table, so the table_multiply parameter acts on nothing")
+
+
 def test_a_parameter_that_changes_nothing_in_the_deck_is_refused(tmp_path):
     extra = ('[[parameters]]\nname = "skin_top"\nkind = "skin"\nwells = ["PRO-1"]\n'
              'layers = [1]\nlow = 0\nhigh = 5\n')  # PRO-1 has no connection in layer 1

@@ -85,6 +85,10 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     assert contact.kind == "unexplained" and contact.parameter.keywords == ("EQUIL",)
     assert 0.003 <= abs(contact.value - 1.0) <= 0.008
 
+    (pvt,) = generate("pvt", seed, info, space, truth)
+    assert pvt.kind == "unexplained" and pvt.parameter.keywords == ("RSVD",)
+    assert pvt.parameter.kind == "table_multiply" and 0.85 <= pvt.value <= 0.93
+
     two = generate("two_kinds", seed, info, space, truth)
     assert len(two) == 2 and two[0].kind != two[1].kind
 

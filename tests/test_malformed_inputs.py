@@ -111,7 +111,8 @@ def bad_case(draw):
         return data, csv, "parameters.0"
     if kind == "unknown_kind":
         p["kind"] = draw(words.filter(lambda w: w not in (
-            "multiply", "skin", "item_multiply", "relperm", "fault", "multregt", "wpimult")))
+            "multiply", "skin", "item_multiply", "relperm", "fault", "multregt", "wpimult",
+            "table_multiply")))
         return data, csv, "parameters.0"
     if kind == "unknown_well":
         data["parameters"][1]["wells"] = [draw(words.filter(lambda w: w not in WELLS))]

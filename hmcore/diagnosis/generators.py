@@ -22,6 +22,10 @@ generator            the truth hides                                        a ri
 ``contact``          the initial water-oil contact moved (EQUIL item 3,    ``unexplained``
                      +-0.3-0.8 % of its depth): no family makes that        (or none, when
                                                                             invisible)
+``pvt``              the initial oil's dissolved gas (RSVD item 2)         ``unexplained``
+                     lowered by 7-15 %: the oil starts undersaturated,     (a fluid property:
+                     its GOR lower until the pressure reaches the new      no family acts on
+                     bubble point                                          PVT)
 ``dated_productivity`` one producer's productivity index multiplied from a  the productivity-
                      report date in 20-50 % of the schedule on (WPIMULT    change family, that
                      x0.15-0.35 or x3-6: damage or a stimulation)           well, its start
@@ -54,7 +58,7 @@ from hmcore.parameters import Parameter, ParameterSpace
 from hmcore.results import natural_key
 
 GENERATORS = ("partial_fault", "offcentre_region", "relperm_endpoint", "two_kinds", "contact",
-              "dated_productivity", "late_productivity")
+              "dated_productivity", "late_productivity", "pvt")
 START_TOLERANCE_DAYS = 92.0
 """A dated cause names a dated effect when its start is this close (about a quarter)."""
 TWO_KINDS_FROM = ("well_skin", "regional_permeability", "layer_permeability",
@@ -80,7 +84,7 @@ def generate(name: str, seed: int, info: DeckInfo, space: ParameterSpace,
         a, b = rng.choice(len(offered), size=2, replace=False)
         return [draw_effect(offered[int(k)], seed, info, space, values) for k in (a, b)]
     c, value = {"partial_fault": _partial_fault, "offcentre_region": _offcentre_region,
-                "relperm_endpoint": _relperm_endpoint, "contact": _contact,
+                "relperm_endpoint": _relperm_endpoint, "contact": _contact, "pvt": _pvt,
                 "dated_productivity": _dated_productivity,
                 "late_productivity": _late_productivity}[name](rng, info, space)
     return [HiddenEffect(c, value)]
@@ -198,6 +202,23 @@ def _contact(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, flo
                   f"the initial water-oil contact is {'deeper' if factor > 1 else 'shallower'} "
                   f"than the model says (depth x{factor:.4f}): no family of the library",
                   details={"generated": "contact", "expect_wells": []})
+    return c, factor
+
+
+def _pvt(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
+    """Less gas dissolved in the initial oil than the model says (RSVD x0.85-0.93): the
+    produced GOR starts lower, and free gas appears later, on every producer. Unlike a moved
+    contact, no candidate can mimic it: the library changes rock, wells, faults, aquifers and
+    the saturation curves, never what the oil holds in solution."""
+    if "RSVD" not in info.keyword_names:
+        raise ValueError(f"the deck {info.path} has no RSVD keyword (the dissolved gas to lower)")
+    factor = float(rng.uniform(0.85, 0.93))
+    p = Parameter(name="hidden_rs_initial", kind="table_multiply", keywords=("RSVD",), item=2,
+                  low=0.5, high=1.5, description="initial solution gas-oil ratio (RSVD item 2)")
+    c = Candidate(f"pvt:rsvd:x{factor:.4f}", "unexplained", p, (), (),
+                  f"the initial oil holds less dissolved gas than the model says (RSVD "
+                  f"x{factor:.4f}): a fluid property, no family of the library",
+                  details={"generated": "pvt", "expect_wells": []})
     return c, factor
 
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from hmcore.parameters import Parameter
 
-LOG_KINDS = ("multiply", "item_multiply", "relperm", "wpimult")
+LOG_KINDS = ("multiply", "item_multiply", "relperm", "wpimult", "table_multiply")
 
 
 class Coordinates:
