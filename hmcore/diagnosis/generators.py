@@ -193,16 +193,13 @@ def _relperm_endpoint(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candi
 
 
 def _contact(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
-    if "EQUIL" not in info.keyword_names:
-        raise ValueError(f"the deck {info.path} has no EQUIL keyword (the contact to move)")
     factor = 1.0 + float(rng.uniform(0.003, 0.008)) * (1 if rng.random() < 0.5 else -1)
     p = Parameter(name="hidden_woc_depth", kind="item_multiply", keywords=("EQUIL",), item=3,
                   low=0.95, high=1.05, description="water-oil contact depth (EQUIL item 3)")
-    c = Candidate(f"contact:woc:x{factor:.4f}", "unexplained", p, (), (),
-                  f"the initial water-oil contact is {'deeper' if factor > 1 else 'shallower'} "
-                  f"than the model says (depth x{factor:.4f}): no family of the library",
-                  details={"generated": "contact", "expect_wells": []})
-    return c, factor
+    return _of_no_family(info, "contact", p, f"contact:woc:x{factor:.4f}",
+                         f"the initial water-oil contact is "
+                         f"{'deeper' if factor > 1 else 'shallower'} than the model says "
+                         f"(depth x{factor:.4f})"), factor
 
 
 def _pvt(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
@@ -210,16 +207,22 @@ def _pvt(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
     produced GOR starts lower, and free gas appears later, on every producer. Unlike a moved
     contact, no candidate can mimic it: the library changes rock, wells, faults, aquifers and
     the saturation curves, never what the oil holds in solution."""
-    if "RSVD" not in info.keyword_names:
-        raise ValueError(f"the deck {info.path} has no RSVD keyword (the dissolved gas to lower)")
     factor = float(rng.uniform(0.85, 0.93))
     p = Parameter(name="hidden_rs_initial", kind="table_multiply", keywords=("RSVD",), item=2,
                   low=0.5, high=1.5, description="initial solution gas-oil ratio (RSVD item 2)")
-    c = Candidate(f"pvt:rsvd:x{factor:.4f}", "unexplained", p, (), (),
-                  f"the initial oil holds less dissolved gas than the model says (RSVD "
-                  f"x{factor:.4f}): a fluid property, no family of the library",
-                  details={"generated": "pvt", "expect_wells": []})
-    return c, factor
+    return _of_no_family(info, "pvt", p, f"pvt:rsvd:x{factor:.4f}",
+                         f"the initial oil holds less dissolved gas than the model says (RSVD "
+                         f"x{factor:.4f}): a fluid property"), factor
+
+
+def _of_no_family(info: DeckInfo, generated: str, p: Parameter, cid: str,
+                  says: str) -> Candidate:
+    """The hidden candidate of an effect no family makes: a right answer is ``unexplained``."""
+    if p.keywords[0] not in info.keyword_names:
+        raise ValueError(f"the deck {info.path} has no {p.keywords[0]} keyword, which the "
+                         f"{generated} generator changes ({p.description})")
+    return Candidate(cid, "unexplained", p, (), (), says + ": no family of the library",
+                     details={"generated": generated, "expect_wells": []})
 
 
 def _dated_productivity(rng, info: DeckInfo, space: ParameterSpace,
