@@ -500,6 +500,10 @@ def test_table_multiply_scales_a_fluid_table_and_names_the_column_and_table(tmp_
                             case.info).read_text()
     rsvd = deck[deck.index("\nRSVD\n"):].split("/")[0].split()
     assert [float(x) for x in rsvd[-4:]] == [2175.0, 37.0, 2496.0, 37.0]  # 74 x 0.5, depths kept
+    from hmcore.deck_info import _parse
+
+    run_deck = tmp_path / "run" / case.deck.name
+    assert list(_parse(run_deck)[0]["RSVD"][0][0].get_raw_data_list()) == [2175, 37, 2496, 37]
     one_problem_matching(problems_of(make_case(tmp_path, extra=_aquct(
         1, kind="table_multiply", keyword="RSVD"))), where=r"parameters\.0",
         what=r"table_multiply needs item = 2 for RSVD")
