@@ -80,6 +80,7 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     (endpoint,) = generate("relperm_endpoint", seed, info, space, truth)
     assert endpoint.kind == "relative_permeability"
     assert endpoint.parameter.mode == "endpoint" and 0.05 <= abs(endpoint.value) <= 0.10
+    assert endpoint.value > 0  # the synthetic SWOF starts at its critical saturation: no room below
 
     (contact,) = generate("contact", seed, info, space, truth)
     assert contact.kind == "unexplained" and contact.parameter.keywords == ("EQUIL",)

@@ -52,8 +52,8 @@ import numpy as np
 
 from hmcore.deck_info import DeckInfo
 from hmcore.diagnosis.extensions import (FAULT_BOUNDS, KINDS, PERM_BOUNDS, Candidate,
-                                         build_candidates, dated_productivity, shifted_regions,
-                                         well_column, wells_below)
+                                         build_candidates, dated_productivity, deck_blocks,
+                                         shifted_regions, well_column, wells_below)
 from hmcore.parameters import Parameter, ParameterSpace
 from hmcore.results import natural_key
 
@@ -181,6 +181,8 @@ def _relperm_endpoint(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candi
     if table is None:
         raise ValueError(f"the deck {info.path} has no SWOF or SWFN table to shift")
     shift = float(rng.uniform(0.05, 0.10)) * (1 if rng.random() < 0.5 else -1)
+    if shift < 0 and not _rows_below_critical(info, table):
+        shift = -shift  # the curve cannot start earlier than the table's first row
     p = Parameter(name="hidden_swcr_shift", kind="relperm", keywords=(table,), item=2,
                   mode="endpoint", low=-0.2, high=0.2,
                   description=f"critical water saturation of {table} moved")
@@ -190,6 +192,20 @@ def _relperm_endpoint(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candi
                   details={"generated": "relperm_endpoint", "expect_wells": [],
                            "expect_ids": ["relative_permeability:water"]})
     return c, shift
+
+
+def _rows_below_critical(info: DeckInfo, table: str) -> bool:
+    """Whether the first ``table`` (SWOF / SWFN) has rows below the critical water saturation,
+    so that a negative end-point shift changes it (the synthetic deck's starts there: without
+    such rows a negative shift is no effect at all)."""
+    from hmcore.deck import TABLE_COLUMNS, shift_endpoint
+
+    records = deck_blocks(info).get(table, [])
+    try:
+        t = np.array([float(x) for x in records[0]]).reshape(-1, TABLE_COLUMNS[table])
+    except (IndexError, ValueError):  # defaulted items: the deck writer refuses them anyway
+        return True
+    return not np.allclose(shift_endpoint(t[:, 0], t[:, 1], -0.05), t[:, 1])
 
 
 def _contact(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
