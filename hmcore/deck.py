@@ -31,6 +31,7 @@ from hmcore.eclipse_lexer import (Block, expand_repeats, include_target, records
                                   tokenize)
 from hmcore.errors import CaseError, Problem
 from hmcore.parameters import MULTIREG_REGIONS, Parameter, ParameterSpace
+from hmcore.tables import width as table_width
 
 _COMPDAT_SKIN_ITEM = 11
 
@@ -127,8 +128,6 @@ class TableTransform:
 Edit = (Multiply | SetSkin | ItemMultiply | TableTransform | FaultMultiplier
         | RegionTransmissibility | PiMultiplier)
 GRID_END = (Multiply, FaultMultiplier, RegionTransmissibility)  # written at the end of GRID
-TABLE_COLUMNS = {"SWOF": 4, "SGOF": 4, "SLGOF": 4, "SWFN": 3, "SGFN": 3, "SOF3": 3, "SOF2": 2,
-                 "RSVD": 2, "PBVD": 2, "RVVD": 2, "PDVD": 2, "PVDG": 3, "PVDO": 3}
 
 
 def edits_for(space: ParameterSpace, values: dict[str, float], info: DeckInfo) -> list[Edit]:
@@ -237,7 +236,7 @@ def _rewrite_tables(block: Block, edits: list[TableTransform], file: Path) -> Bl
     """Tables of ``block.keyword`` (saturation or fluid) with one column transformed."""
     import numpy as np
 
-    ncol = TABLE_COLUMNS[block.keyword]
+    ncol = table_width(block.keyword)
     new_lines = [block.lines[0], "-- tables rewritten by hmflow\n"]
     for rec in _table_records(block.body):
         values = np.array([float(x) for x in expand_repeats(rec)], dtype=float)

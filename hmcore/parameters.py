@@ -44,6 +44,8 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, Strict, model_validator
 
+from hmcore.tables import TableFamily, editable
+
 
 class ParameterKind(StrEnum):
     """What a parameter does to the deck (see the module's docstring)."""
@@ -60,14 +62,11 @@ class ParameterKind(StrEnum):
 
 Bound = Annotated[float, Strict(), AllowInfNan(False)]  # a finite number (TOML true/inf refused)
 MULTIREG_REGIONS = {"MULTNUM": "M", "FLUXNUM": "F", "OPERNUM": "O"}
-RELPERM_TABLES = ("SWOF", "SGOF", "SWFN", "SGFN", "SOF3", "SOF2", "SLGOF")
-RELPERM_COLUMNS = {"SWOF": (2, 3), "SGOF": (2, 3), "SLGOF": (2, 3), "SWFN": (2,), "SGFN": (2,),
-                   "SOF3": (2, 3), "SOF2": (2,)}  # 1-based columns holding a relative
-# permeability (column 1 is the saturation; SWOF/SGOF/SLGOF's 4th, SWFN/SGFN's 3rd: capillary
-# pressure)
-TABLE_MULTIPLIABLE = {"RSVD": (2,), "PBVD": (2,), "RVVD": (2,), "PDVD": (2,), "PVDG": (2, 3),
-                      "PVDO": (2, 3)}  # 1-based columns a table_multiply may scale (column 1
-# is the depth or the pressure the table is read at)
+RELPERM_COLUMNS = editable(TableFamily.RELPERM)  # table -> 1-based relative permeability
+# columns (column 1 is the saturation, the last of SWOF/SGOF/SLGOF/SWFN/SGFN capillary pressure)
+RELPERM_TABLES = tuple(RELPERM_COLUMNS)
+TABLE_MULTIPLIABLE = editable(TableFamily.FLUID)  # table -> 1-based columns a table_multiply
+# may scale (column 1 is the depth or the pressure the table is read at)
 GRID_MULTIPLIABLE = ("PORO", "PERMX", "PERMY", "PERMZ", "NTG", "MULTX", "MULTY", "MULTZ",
                      "MULTX-", "MULTY-", "MULTZ-")
 
@@ -166,6 +165,10 @@ class Parameter(BaseModel):
         if (self.kind in ("item_multiply", "wpimult", "table_multiply")
                 or (self.kind == "relperm" and self.mode != "endpoint")) and self.low <= 0:
             raise ValueError(f"parameter '{self.name}' must have low > 0, got low={self.low}")
+        if self.mode != "scale" and self.kind != "relperm":
+            raise ValueError(f"parameter '{self.name}': mode = {self.mode!r} is only for kind "
+                             f"'relperm' (how a relative permeability curve changes), not "
+                             f"'{self.kind}'; remove it")
         if self.start_day is not None and self.kind != "wpimult":
             raise ValueError(f"parameter '{self.name}': start_day (an edit from a date on) is "
                              f"only for kind 'wpimult', not '{self.kind}'")

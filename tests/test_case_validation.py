@@ -510,6 +510,9 @@ def test_table_multiply_scales_a_fluid_table_and_names_the_column_and_table(tmp_
     one_problem_matching(problems_of(make_case(tmp_path, extra=_aquct(
         2, kind="table_multiply", keyword="PVDO"))), where=r"'aq'",
         what=r"no PVDO table, so the table_multiply parameter acts on nothing")
+    one_problem_matching(problems_of(make_case(tmp_path, extra=_aquct(
+        2, kind="table_multiply", keyword="RSVD") + 'mode = "power"\n')),
+        where=r"parameters\.0", what=r"mode = 'power' is only for kind 'relperm'")
 
 
 def test_a_parameter_that_changes_nothing_in_the_deck_is_refused(tmp_path):

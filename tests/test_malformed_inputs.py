@@ -59,8 +59,8 @@ def bad_case(draw):
     kind = draw(st.sampled_from([
         "unknown_key", "unknown_section_key", "bad_number", "bad_history_end", "missing_key",
         "bad_path", "bad_backend", "low_ge_high", "bad_bound", "unknown_kind", "unknown_well",
-        "duplicate_names", "empty_parameters", "item_no_record", "relperm_item", "box_outside",
-        "broken_toml", "binary_toml"]))
+        "duplicate_names", "empty_parameters", "item_no_record", "relperm_item", "mode_not_relperm",
+        "box_outside", "broken_toml", "binary_toml"]))
     case = data["case"]
     if kind == "unknown_key":
         key = draw(words.filter(lambda k: k not in CaseFile.model_fields))
@@ -134,6 +134,11 @@ def bad_case(draw):
         data["parameters"][0] = {"name": "kr", "kind": "relperm", "low": 0.5, "high": 2,
                                  "keywords": ["SWOF"],
                                  "item": draw(st.sampled_from([1, 4, 5, 17]))}
+        return data, csv, "parameters.0"
+    if kind == "mode_not_relperm":  # a curve's mode on a parameter that has no curve
+        data["parameters"][0] = {"name": "rs", "kind": draw(st.sampled_from(
+            ["table_multiply", "multiply", "item_multiply"])), "low": 0.5, "high": 2,
+            "keywords": ["RSVD"], "item": 2, "mode": draw(st.sampled_from(["power", "endpoint"]))}
         return data, csv, "parameters.0"
     if kind == "box_outside":
         p["box"] = [1, 1, 1, 1, 1, draw(st.integers(min_value=50, max_value=10**6))]
