@@ -144,7 +144,8 @@ def order_confirmed(confirmed: dict[str, dict], ids: list[str], tie_band: float)
 
 CAUSE_CONFIRMED_KEYS = ("value", "delta_ssr_fit", "delta_ssr_heldout", "fit_before", "fit_after",
                         "heldout_before", "heldout_after", "fit_beyond_noise",
-                        "heldout_beyond_noise", "heldout_within_noise_before", "runs")
+                        "heldout_beyond_noise", "heldout_within_noise_before", "open_end",
+                        "runs")
 
 
 def cause(c: Candidate, score: Score | None, conf: dict | None, evidence: str) -> dict:
@@ -227,6 +228,32 @@ def unexplained_cause(found: list[dict], line: float, m: int, alpha: float) -> d
             "machine": None, "confirmed": None}
 
 
+def _range(c: Candidate, conf: dict) -> str:
+    return f"{conf['value']:.4g} in [{c.parameter.low:g}, {c.parameter.high:g}]"
+
+
+def edge_evidence(c: Candidate, conf: dict) -> str:
+    """Why a fit at an open end of its range (:func:`hmcore.diagnosis.extensions.open_end`)
+    is not accepted."""
+    return (f"recalibrated: the fitted misfit drops beyond noise, but only at the "
+            f"{conf['open_end']} end of its range ({_range(c, conf)}) - it stands in for an "
+            "effect it does not describe, or for a larger one of its kind (widen the range "
+            "if that is plausible); not accepted")
+
+
+def edge_unexplained(c: Candidate, conf: dict) -> dict:
+    """The ``unexplained`` cause when no residual test localises the discrepancy but the best
+    fit beyond noise stops at an open end of its range: where that candidate acts."""
+    return {"kind": "unexplained", "wells": list(c.wells), "layers": list(c.layers),
+            "score": None, "chi2": None, "id": "unexplained", "where": [],
+            "description": (f"the calibrated model misses the data beyond noise (the fitted "
+                            f"whitened SSR drops by {conf['delta_ssr_fit']:.0f} when {c.id} "
+                            f"goes to the {conf['open_end']} end of its range) and no family "
+                            "explains it within its range"),
+            "evidence": f"{c.id} fits only at the end of its range", "machine": None,
+            "confirmed": None}
+
+
 @dataclass(frozen=True)
 class Decision:
     """The ranked causes (``none`` marks the noise level), the selected candidate id (or
@@ -263,9 +290,13 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
     def cause_of(cid: str, evidence: str) -> dict:
         return cause(by_id[cid], scores.get(cid), confirmed.get(cid), evidence)
 
+    # a fit that stops at an open end of its range stands in for something else (open_end)
+    edge = sorted((k for k, v in confirmed.items() if v["fit_beyond_noise"] and v.get("open_end")),
+                  key=lambda k: confirmed[k]["ssr_fit_after"])
     confirmed_ok = order_confirmed(confirmed, [k for k, v in confirmed.items()
-                                               if v["fit_beyond_noise"]], s.tie_band)
-    confirmed_bad = [k for k in confirmed if k not in confirmed_ok]
+                                               if v["fit_beyond_noise"] and k not in edge],
+                                   s.tie_band)
+    confirmed_bad = [k for k in confirmed if k not in confirmed_ok and k not in edge]
     unconfirmed = [k for k in ranking["beyond_noise"] if k not in confirmed]
     rest = [k for k in ranking["order"]
             if k not in confirmed_ok and k not in confirmed_bad and k not in unconfirmed]
@@ -275,6 +306,7 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
                     + [k for k in confirmed_ok if not confirmed[k]["heldout_beyond_noise"]])
     causes = [cause_of(k, _evidence(confirmed[k])) for k in confirmed_ok]
     causes += [cause_of(k, "score test beyond noise (not recalibrated)") for k in unconfirmed]
+    causes += [cause_of(k, edge_evidence(by_id[k], confirmed[k])) for k in edge]
     top_chi2 = max([scores[k].chi2 for k in scores] or [0.0])
     causes.append({"kind": "none", "wells": [], "layers": [], "score": None,
                    "chi2": s.chi2_threshold, "id": "none",
@@ -291,14 +323,15 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
     if confirmed_ok and confirmed[confirmed_ok[0]]["heldout_beyond_noise"]:
         selected = confirmed_ok[0]
     verdict = _verdict(selected, confirmed_ok, confirmed, ranking, by_id,
-                       base_heldout_per_well, n_heldout_measured, s)
+                       base_heldout_per_well, n_heldout_measured, s, edge)
     # nothing accepted while the calibrated model misses the data beyond noise: no family
     # explains it (none fits the fitted history beyond noise, or those that do, the held-back
     # history vetoes), so the first answer is `unexplained`, localised, not a rejected name
     found, line, m = (localise(residuals, s.unexplained_alpha) if selected is None
                       else ([], 0.0, 0))
-    if found:
-        causes.insert(0, unexplained_cause(found, line, m, s.unexplained_alpha))
+    if found or (selected is None and edge):
+        causes.insert(0, unexplained_cause(found, line, m, s.unexplained_alpha) if found
+                      else edge_unexplained(by_id[edge[0]], confirmed[edge[0]]))
         verdict = (f"unexplained: {causes[0]['description']} ({causes[0]['evidence']}). "
                    + verdict[0].upper() + verdict[1:])
     n_ho = n_heldout_measured  # the rate controls' residuals are 0, not noise
@@ -328,7 +361,7 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
 
 def _verdict(selected: str | None, confirmed_ok: list[str], confirmed: dict[str, dict],
              ranking: dict, by_id: dict[str, Candidate], base_heldout_per_well: dict,
-             n_heldout_measured: int, s: DiagnosisSettings) -> str:
+             n_heldout_measured: int, s: DiagnosisSettings, edge: list[str] = ()) -> str:
     """The decision in words."""
     if selected is not None:
         conf = confirmed[selected]
@@ -360,6 +393,12 @@ def _verdict(selected: str | None, confirmed_ok: list[str], confirmed: dict[str,
                 f"noise (SSR change {-conf['delta_ssr_heldout']:+.1f}, held-back E "
                 f"{conf['heldout_before']:.4g} -> {conf['heldout_after']:.4g}); "
                 "no extension is selected")
+    if edge:
+        k = edge[0]
+        return (f"rejected {k}: it lowers the fitted misfit beyond noise (SSR -"
+                f"{confirmed[k]['delta_ssr_fit']:.0f}) only at the {confirmed[k]['open_end']} "
+                f"end of its range ({_range(by_id[k], confirmed[k])}): it stands in for "
+                "something it does not describe; no extension is selected")
     if confirmed and not ranking["beyond_noise"]:
         return ("no candidate explains more of the residual than noise would: the "
                 f"{len(confirmed)} candidate(s) near the line were recalibrated and "

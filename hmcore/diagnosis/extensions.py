@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from hmcore.deck_info import DeckInfo
+from hmcore.diagnosis.recalibrate import Coordinates
 from hmcore.eclipse_lexer import expand_repeats, include_target, records, split_blocks
 from hmcore.parameters import Parameter, ParameterSpace
 from hmcore.results import natural_key
@@ -57,6 +58,11 @@ FAULT_BOUNDS = (1e-4, 1.0)
 RELPERM_BOUNDS = (0.4, 3.0)
 WELL_SKIN_BOUNDS = (-5.0, 30.0)
 PI_BOUNDS = (0.05, 20.0)
+LIMIT_ENDS = {"fault_transmissibility": ("low", "high"), "vertical_permeability": ("low",),
+              "aquifer_strength": ("low",)}
+"""The ends of a family's range that are a physical limit - a sealed fault (and no fault), a
+layer that is a vertical barrier, next to no aquifer: a fit there is a complete effect. At any
+other end (:func:`open_end`) the data ask the family for more than its range holds."""
 PROBE = {"well_skin": 6.0, "regional_permeability": 0.4, "layer_permeability": 0.4,
          "vertical_permeability": 0.1, "aquifer_strength": 0.3,
          "fault_transmissibility": 0.01, "relative_permeability": 1.6,
@@ -87,6 +93,23 @@ class Candidate:
         return {"id": self.id, "kind": self.kind, "wells": list(self.wells),
                 "layers": list(self.layers), "neutral": self.neutral, "probe": self.probe,
                 "parameter": self.parameter.model_dump(mode="json"), **self.details}
+
+
+def open_end(c: Candidate, value: float, near: float) -> str | None:
+    """``"low"`` or ``"high"`` when ``value`` lies within ``near`` (scaled distance, the
+    recalibration's coordinates: log scale for multipliers) of that end of ``c``'s range and
+    that end is not a physical limit of the family (:data:`LIMIT_ENDS`); else None.
+
+    A recalibrated candidate that stops there fits the data only as far as its range lets it:
+    it stands in for an effect it does not describe (on the synthetic case, a moved water-oil
+    contact drove the krw exponent to 3.0, its upper end, in two of three seeds; less dissolved
+    gas drove layer 1's kv to x100) - or for a larger effect of its own kind, beyond the range
+    a user would call plausible."""
+    if near < 0:
+        return None
+    (u,) = Coordinates([c.parameter]).to_u({c.name: value})
+    end = "high" if u >= 1.0 - near else "low" if u <= -1.0 + near else None
+    return None if end is None or end in LIMIT_ENDS.get(c.kind, ()) else end
 
 
 # ----------------------------------------------------------------------------- deck facts

@@ -55,7 +55,7 @@ from hmcore.diagnosis import dating, decision, refit, screening
 from hmcore.diagnosis.attribution import Score, projector_basis
 from hmcore.diagnosis.extensions import (Candidate, base_values, build_candidates,
                                          SHIFTS, current_skin, dated_productivity,
-                                         extended_space, shifted_regions)
+                                         extended_space, open_end, shifted_regions)
 from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings, Point,
                                           run_lockstep)
 from hmcore.diagnosis.residuals import ObservationSet, analyse_residuals
@@ -617,6 +617,7 @@ class Diagnosis:
             "fit_before": base_sc["E"], "fit_after": sc["E"],
             "heldout_before": e_ho_b, "heldout_after": e_ho_a,
             "fit_beyond_noise": bool(fit_ok), "heldout_beyond_noise": bool(ho_ok),
+            "open_end": open_end(c, run.values.get(c.name, c.neutral), s.open_end),
             "heldout_within_noise_before": bool(quiet),
             "per_well_response_after": sc["per_well_response"],
             "per_well_response_heldout_after": decision.per_well_heldout(self.case,
