@@ -573,6 +573,9 @@ def test_a_fit_at_an_open_end_of_its_range_is_a_stand_in_not_a_cause(tmp_path):
     listed = next(c for c in doc["causes"] if c["id"] == "well_skin:PROD3")
     assert "high end of its range" in listed["evidence"]
     assert doc["verdict"].startswith("unexplained: ")
+    from hmcore.diagnosis.report import markdown_report
+
+    assert "only at the high end of its range" in markdown_report(doc)
 
 
 def test_a_candidate_under_the_line_is_confirmed_by_its_recalibration(tmp_path):
