@@ -543,15 +543,16 @@ def test_an_effect_the_library_holds_in_part_is_named_by_its_nearest_candidate(
         assert doc["statistic"]["vs_none"]["share"] < 0.8
 
 
-def test_a_fit_at_an_open_end_of_its_range_is_a_stand_in_not_a_cause(tmp_path):
+def test_a_cause_that_stops_at_an_open_end_of_its_range_is_flagged(tmp_path):
     """PROD3's skin hidden at 45, beyond the candidate's range (up to 30): the recalibrated
-    skin stops at 30 and fits beyond noise, yet it is not accepted - the data ask the family
-    for more than its range holds - and the answer is `unexplained` at PROD3, the skin listed
-    with the end it reached. The ends that are a physical limit (a sealed fault, a vertical
-    barrier) are not open: a fit there is a complete effect."""
+    skin stops at 30 and is accepted, and the verdict warns that it may stand in for something
+    else (on the generator sweep such fits stood in for a moved contact). The ends that are a
+    physical limit (a sealed fault, a vertical barrier) are not open: a fit there is a
+    complete effect, with no warning."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import build_candidates, open_end
     from hmcore.diagnosis.hidden import synthetic_deck_info
+    from hmcore.diagnosis.report import markdown_report
 
     cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
                                                ParameterSpace.reference(), {"skin": 4.0})}
@@ -562,20 +563,19 @@ def test_a_fit_at_an_open_end_of_its_range_is_a_stand_in_not_a_cause(tmp_path):
     assert open_end(fault, fault.parameter.low, 0.01) is None  # sealed: a limit, not an end
     assert open_end(kv, kv.parameter.low, 0.01) is None and \
         open_end(kv, kv.parameter.high, 0.01) == "high"
-    assert open_end(skin, skin.parameter.high, -1.0) is None  # the rule switched off
+    assert open_end(skin, skin.parameter.high, -1.0) is None  # the warning switched off
     case, sim, _ = _linear_case(tmp_path, skin.parameter, 45.0)
     doc = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(plots=False))
-    conf = doc["candidates_recalibrated"]["well_skin:PROD3"]
-    assert conf["fit_beyond_noise"] and conf["open_end"] == "high", conf["value"]
-    assert doc["selected"] is None and "well_skin:PROD3" not in doc["fits_beyond_noise"]
-    first = doc["causes"][0]
-    assert first["kind"] == "unexplained" and "PROD3" in first["wells"], doc["verdict"]
-    listed = next(c for c in doc["causes"] if c["id"] == "well_skin:PROD3")
-    assert "high end of its range" in listed["evidence"]
-    assert doc["verdict"].startswith("unexplained: ")
-    from hmcore.diagnosis.report import markdown_report
-
-    assert "only at the high end of its range" in markdown_report(doc)
+    assert doc["selected"]["id"] == "well_skin:PROD3", doc["verdict"]
+    assert doc["candidates_recalibrated"]["well_skin:PROD3"]["open_end"] == "high"
+    assert "well_skin:PROD3 stopped at the high end of its range" in doc["verdict"]
+    assert doc["causes"][0]["evidence"].endswith("confirms it") and \
+        "at the high end of its range" in doc["causes"][0]["evidence"]
+    assert "stopped at the high end of its range" in markdown_report(doc)
+    (tmp_path / "in").mkdir()
+    case, sim, _ = _linear_case(tmp_path / "in", skin.parameter, 12.0)
+    doc = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(plots=False))
+    assert doc["selected"]["id"] == "well_skin:PROD3" and "end of its range" not in doc["verdict"]
 
 
 def test_a_candidate_under_the_line_is_confirmed_by_its_recalibration(tmp_path):
@@ -638,7 +638,7 @@ def test_an_effect_only_the_held_back_history_shows_is_found_on_a_later_window(t
 
     cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
                                                ParameterSpace.reference(), {"skin": 4.0})}
-    case, sim, _ = _linear_case(tmp_path, cands["well_skin:PROD3"].parameter, 25.0,
+    case, sim, _ = _linear_case(tmp_path, cands["well_skin:PROD3"].parameter, 30.0,
                                 hidden_from=1350.0)
     short = diagnose(case, sim.evaluate_batch,
                      settings=DiagnosisSettings(plots=False, later_origins=()))

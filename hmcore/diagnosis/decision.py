@@ -154,7 +154,7 @@ def cause(c: Candidate, score: Score | None, conf: dict | None, evidence: str) -
             "score": score.score if score else None, "chi2": score.chi2 if score else None,
             "description": c.description, "id": c.id, "evidence": evidence,
             "start_day": c.details.get("start_day"), "machine": c.machine(),
-            "confirmed": None if conf is None else {k: conf[k] for k in CAUSE_CONFIRMED_KEYS}}
+            "confirmed": None if conf is None else {k: conf.get(k) for k in CAUSE_CONFIRMED_KEYS}}
 
 
 def accepted_cause(cause: dict, conf: dict, round_: int) -> dict:
@@ -172,6 +172,8 @@ def accepted_cause(cause: dict, conf: dict, round_: int) -> dict:
 
 def _evidence(conf: dict) -> str:
     text = "recalibrated: the fitted misfit drops beyond noise"
+    if conf.get("open_end"):
+        text += f", at the {conf['open_end']} end of its range"
     if conf.get("tied"):
         text += "; as good a fit as another candidate (the held-back history orders them)"
     return text + ("; the held-back history confirms it" if conf["heldout_beyond_noise"]
@@ -228,32 +230,6 @@ def unexplained_cause(found: list[dict], line: float, m: int, alpha: float) -> d
             "machine": None, "confirmed": None}
 
 
-def _range(c: Candidate, conf: dict) -> str:
-    return f"{conf['value']:.4g} in [{c.parameter.low:g}, {c.parameter.high:g}]"
-
-
-def edge_evidence(c: Candidate, conf: dict) -> str:
-    """Why a fit at an open end of its range (:func:`hmcore.diagnosis.extensions.open_end`)
-    is not accepted."""
-    return (f"recalibrated: the fitted misfit drops beyond noise, but only at the "
-            f"{conf['open_end']} end of its range ({_range(c, conf)}) - it stands in for an "
-            "effect it does not describe, or for a larger one of its kind (widen the range "
-            "if that is plausible); not accepted")
-
-
-def edge_unexplained(c: Candidate, conf: dict) -> dict:
-    """The ``unexplained`` cause when no residual test localises the discrepancy but the best
-    fit beyond noise stops at an open end of its range: where that candidate acts."""
-    return {"kind": "unexplained", "wells": list(c.wells), "layers": list(c.layers),
-            "score": None, "chi2": None, "id": "unexplained", "where": [],
-            "description": (f"the calibrated model misses the data beyond noise (the fitted "
-                            f"whitened SSR drops by {conf['delta_ssr_fit']:.0f} when {c.id} "
-                            f"goes to the {conf['open_end']} end of its range) and no family "
-                            "explains it within its range"),
-            "evidence": f"{c.id} fits only at the end of its range", "machine": None,
-            "confirmed": None}
-
-
 @dataclass(frozen=True)
 class Decision:
     """The ranked causes (``none`` marks the noise level), the selected candidate id (or
@@ -290,13 +266,9 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
     def cause_of(cid: str, evidence: str) -> dict:
         return cause(by_id[cid], scores.get(cid), confirmed.get(cid), evidence)
 
-    # a fit that stops at an open end of its range stands in for something else (open_end)
-    edge = sorted((k for k, v in confirmed.items() if v["fit_beyond_noise"] and v.get("open_end")),
-                  key=lambda k: confirmed[k]["ssr_fit_after"])
     confirmed_ok = order_confirmed(confirmed, [k for k, v in confirmed.items()
-                                               if v["fit_beyond_noise"] and k not in edge],
-                                   s.tie_band)
-    confirmed_bad = [k for k in confirmed if k not in confirmed_ok and k not in edge]
+                                               if v["fit_beyond_noise"]], s.tie_band)
+    confirmed_bad = [k for k in confirmed if k not in confirmed_ok]
     unconfirmed = [k for k in ranking["beyond_noise"] if k not in confirmed]
     rest = [k for k in ranking["order"]
             if k not in confirmed_ok and k not in confirmed_bad and k not in unconfirmed]
@@ -306,7 +278,6 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
                     + [k for k in confirmed_ok if not confirmed[k]["heldout_beyond_noise"]])
     causes = [cause_of(k, _evidence(confirmed[k])) for k in confirmed_ok]
     causes += [cause_of(k, "score test beyond noise (not recalibrated)") for k in unconfirmed]
-    causes += [cause_of(k, edge_evidence(by_id[k], confirmed[k])) for k in edge]
     top_chi2 = max([scores[k].chi2 for k in scores] or [0.0])
     causes.append({"kind": "none", "wells": [], "layers": [], "score": None,
                    "chi2": s.chi2_threshold, "id": "none",
@@ -323,15 +294,14 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
     if confirmed_ok and confirmed[confirmed_ok[0]]["heldout_beyond_noise"]:
         selected = confirmed_ok[0]
     verdict = _verdict(selected, confirmed_ok, confirmed, ranking, by_id,
-                       base_heldout_per_well, n_heldout_measured, s, edge)
+                       base_heldout_per_well, n_heldout_measured, s)
     # nothing accepted while the calibrated model misses the data beyond noise: no family
     # explains it (none fits the fitted history beyond noise, or those that do, the held-back
     # history vetoes), so the first answer is `unexplained`, localised, not a rejected name
     found, line, m = (localise(residuals, s.unexplained_alpha) if selected is None
                       else ([], 0.0, 0))
-    if found or (selected is None and edge):
-        causes.insert(0, unexplained_cause(found, line, m, s.unexplained_alpha) if found
-                      else edge_unexplained(by_id[edge[0]], confirmed[edge[0]]))
+    if found:
+        causes.insert(0, unexplained_cause(found, line, m, s.unexplained_alpha))
         verdict = (f"unexplained: {causes[0]['description']} ({causes[0]['evidence']}). "
                    + verdict[0].upper() + verdict[1:])
     n_ho = n_heldout_measured  # the rate controls' residuals are 0, not noise
@@ -361,13 +331,19 @@ def decide(candidates: list[Candidate], scores: dict[str, Score], confirmed: dic
 
 def _verdict(selected: str | None, confirmed_ok: list[str], confirmed: dict[str, dict],
              ranking: dict, by_id: dict[str, Candidate], base_heldout_per_well: dict,
-             n_heldout_measured: int, s: DiagnosisSettings, edge: list[str] = ()) -> str:
+             n_heldout_measured: int, s: DiagnosisSettings) -> str:
     """The decision in words."""
     if selected is not None:
         conf = confirmed[selected]
         verdict = (f"accepted {selected}: {by_id[selected].description}; fitted E "
                    f"{conf['fit_before']:.4g} -> {conf['fit_after']:.4g}, held-back E "
                    f"{conf['heldout_before']:.4g} -> {conf['heldout_after']:.4g}")
+        if conf.get("open_end"):
+            c = by_id[selected]
+            verdict += (f" ({selected} stopped at the {conf['open_end']} end of its range, "
+                        f"{conf['value']:.4g} in [{c.parameter.low:g}, {c.parameter.high:g}]: "
+                        "it may stand in for an effect it does not describe, or for a larger "
+                        "one of its kind)")
         if conf["heldout_after"] >= conf["heldout_before"]:
             rises = worst_heldout_rises(base_heldout_per_well,
                                         conf["per_well_response_heldout_after"])
@@ -393,12 +369,6 @@ def _verdict(selected: str | None, confirmed_ok: list[str], confirmed: dict[str,
                 f"noise (SSR change {-conf['delta_ssr_heldout']:+.1f}, held-back E "
                 f"{conf['heldout_before']:.4g} -> {conf['heldout_after']:.4g}); "
                 "no extension is selected")
-    if edge:
-        k = edge[0]
-        return (f"rejected {k}: it lowers the fitted misfit beyond noise (SSR -"
-                f"{confirmed[k]['delta_ssr_fit']:.0f}) only at the {confirmed[k]['open_end']} "
-                f"end of its range ({_range(by_id[k], confirmed[k])}): it stands in for "
-                "something it does not describe; no extension is selected")
     if confirmed and not ranking["beyond_noise"]:
         return ("no candidate explains more of the residual than noise would: the "
                 f"{len(confirmed)} candidate(s) near the line were recalibrated and "

@@ -143,11 +143,11 @@ class DiagnosisSettings:
     """Scaled distance to a bound that counts as "at the bound" for the restart (negative: no
     restarts)."""
     open_end: float = 0.01
-    """A recalibrated candidate within this scaled distance of an end of its range that is not
-    a physical limit of its family is not accepted: it stands in for something it does not
-    describe (:func:`hmcore.diagnosis.extensions.open_end`; negative: never). Set on the
-    synthetic generator sweep of 2026-11-26 (docs/diagnosis.md), where every wrong name at an
-    end of its range came from an effect of no family and no right answer stopped at one."""
+    """The verdict warns that a selected cause stopped at an end of its range (within this
+    scaled distance) that is not a physical limit of its family: it may stand in for
+    something it does not describe (:func:`hmcore.diagnosis.extensions.open_end`; negative:
+    never). A warning, not a veto: making it a veto was tried on the generator sweep
+    (docs/diagnosis.md) and gave a worse model, not a better answer."""
     restart_top: int = 2
     """This many recalibrated candidates (best fits first) are restarted (each costs about 20
     runs; on PUNQ-S3 the hidden aquifer and layer were the best warm fits), and with them every
