@@ -190,7 +190,13 @@ def _found(r: dict) -> str:
 
 
 def table(rows: list[dict]) -> str:
-    """The markdown table of sweep rows: one line per case, then one per (case, kind)."""
+    """The markdown table of sweep rows: one line per case, then one per (case, kind); in the
+    order case, kind (controls, then the generators in their order, then library kinds), seed."""
+    from hmcore.diagnosis.generators import GENERATORS
+
+    order = {k: i for i, k in enumerate(("control", *GENERATORS))}
+    rows = sorted(rows, key=lambda r: (r["case"] != "synthetic", r["case"],
+                                       order.get(r["kind"], len(order)), r["kind"], r["seed"]))
     lines = ["| case | kind | seed | hidden (value) | signal chi2 fit / after globals | "
              "answer (window) | accepted: held-back E before -> after | found | sims | min |",
              "|---|---|---|---|---|---|---|---|---|---|"]
