@@ -604,11 +604,12 @@ class Diagnosis:
         fit_ok = d_fit > s.fit_threshold
         ho_ok, quiet = decision.heldout_confirms(base_sc["ssr_heldout"], sc["ssr_heldout"],
                                                  e_ho_b, e_ho_a, self.obs.n_noise("heldout"), s)
+        value = run.values.get(c.name, c.neutral)
         record = {
             "start_value": start.values.get(c.name, c.neutral),
             "line_search": self.line_search.get(cid, []),
             "id": cid, "values": {c.name: c.neutral, **run.values},
-            "value": run.values.get(c.name, c.neutral),
+            "value": value,
             "runs": n_eval, "iterations": iters, "stopped": reason, "refined": refined is not None,
             "restart": {key: v for key, v in restart.items() if key != "minimiser"} or None,
             "ssr_fit_before": base_sc["ssr_fit"], "ssr_fit_after": sc["ssr_fit"],
@@ -617,7 +618,7 @@ class Diagnosis:
             "fit_before": base_sc["E"], "fit_after": sc["E"],
             "heldout_before": e_ho_b, "heldout_after": e_ho_a,
             "fit_beyond_noise": bool(fit_ok), "heldout_beyond_noise": bool(ho_ok),
-            "open_end": open_end(c, run.values.get(c.name, c.neutral), s.open_end),
+            "open_end": open_end(c, value, s.open_end),
             "heldout_within_noise_before": bool(quiet),
             "per_well_response_after": sc["per_well_response"],
             "per_well_response_heldout_after": decision.per_well_heldout(self.case,
