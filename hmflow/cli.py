@@ -748,7 +748,12 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
 
 KINDS_HELP = ("Families of candidate extensions to search, comma-separated (default all): "
               "well_skin, regional_permeability, layer_permeability, vertical_permeability, "
-              "aquifer_strength, fault_transmissibility, relative_permeability")
+              "aquifer_strength, fault_transmissibility, relative_permeability, "
+              "productivity_change")
+"""Spelled out so that ``--help`` does not import the diagnosis; a test holds it to
+:data:`hmcore.diagnosis.extensions.KINDS`, as ``GENERATORS_HELP`` to the generators."""
+GENERATORS_HELP = ("partial_fault, offcentre_region, relperm_endpoint, relperm_scaling, "
+                   "two_kinds, contact, pvt, dated_productivity, late_productivity")
 
 
 @app.command()
@@ -854,10 +859,8 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
                                   "exist or be empty)"),
          kind: Optional[str] = typer.Option(None, "--kind", help="Kind of the hidden effect, "
                                             "drawn by --seed: a library kind, or a generator "
-                                            "of effects beyond the library (partial_fault, "
-                                            "offcentre_region, relperm_endpoint, two_kinds, "
-                                            "contact, dated_productivity); omit: a control, "
-                                            "nothing hidden"),
+                                            f"of effects beyond the library ({GENERATORS_HELP}"
+                                            "); omit: a control, nothing hidden"),
          seed: int = typer.Option(0, "--seed", help="Draws the effect, its strength and the "
                                   "noise (and, for the synthetic case, the fields)"),
          candidate: Optional[str] = typer.Option(None, "--candidate", help="Hide this library "

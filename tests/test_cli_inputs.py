@@ -114,3 +114,14 @@ def test_a_linked_campaign_folder_is_refused_before_prefect_starts(tmp_path):
                          "--storage", str(tmp_path / "store")])
     assert out.exit_code == 2 and "symbolic link" in text, out.output
     assert list(outside.iterdir()) == []
+
+
+def test_the_help_lists_every_kind_and_generator():
+    """``--kinds`` and ``hide --kind`` spell their choices out (so ``--help`` does not import
+    the diagnosis): every family and every generator is there, and nothing else."""
+    from hmcore.diagnosis.extensions import KINDS
+    from hmcore.diagnosis.generators import GENERATORS
+    from hmflow.cli import GENERATORS_HELP, KINDS_HELP
+
+    assert KINDS_HELP.split(": ", 1)[1].split(", ") == list(KINDS)
+    assert sorted(GENERATORS_HELP.split(", ")) == sorted(GENERATORS)

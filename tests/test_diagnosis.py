@@ -509,14 +509,16 @@ def test_a_region_beside_a_well_is_named_by_a_moved_box(tmp_path):
 
 
 @pytest.mark.parametrize("generator,value,remains", [("partial_fault", 0.005, True),
-                                                     ("relperm_endpoint", 0.5, False)])
+                                                     ("relperm_endpoint", 0.5, False),
+                                                     ("relperm_scaling", 0.5, False)])
 def test_an_effect_the_library_holds_in_part_is_named_by_its_nearest_candidate(
         tmp_path, generator, value, remains):
     """Stand-ins for the generators whose effect a library candidate holds only in part: a
     barrier on part of a plane off the library's midlines (``partial_fault``) and the water
-    curve's end point moved (``relperm_endpoint``). The hidden signature is 0.8 that of the
-    candidate a right answer names (the plane that parts the producers the same way; the krw
-    exponent) and 0.6 one of its own, which no candidate holds: that candidate is named and
+    curve's end point moved (``relperm_endpoint``) or a curve scaled (``relperm_scaling``,
+    the water or the gas one). The hidden signature is 0.8 that of the
+    candidate a right answer names (the plane that parts the producers the same way; the
+    exponent of that phase's curve) and 0.6 one of its own, which no candidate holds: that candidate is named and
     accepted, and the generator's own judge says found. (Which candidate that is - the
     generator's ``expect_ids`` - is taken as given here; that it parts the producers as the
     hidden plane does is tested with the generators.) Where the part no candidate holds

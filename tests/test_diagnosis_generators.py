@@ -82,6 +82,12 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     assert endpoint.parameter.mode == "endpoint" and 0.05 <= abs(endpoint.value) <= 0.10
     assert endpoint.value > 0  # the synthetic SWOF starts at its critical saturation: no room below
 
+    (scaled,) = generate("relperm_scaling", seed, info, space, truth)
+    assert scaled.kind == "relative_permeability" and scaled.parameter.mode == "scale"
+    assert 0.3 <= scaled.value <= 0.5 or 2.0 <= scaled.value <= 3.0
+    phase = scaled.candidate.details["expect_ids"][0].split(":")[1]
+    assert scaled.parameter.keywords == ({"water": "SWOF", "gas": "SGOF"}[phase],)
+
     (contact,) = generate("contact", seed, info, space, truth)
     assert contact.kind == "unexplained" and contact.parameter.keywords == ("EQUIL",)
     assert 0.003 <= abs(contact.value - 1.0) <= 0.008
@@ -101,7 +107,7 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     assert dated.value <= 0.35 or dated.value >= 3.0
     (late,) = generate("late_productivity", seed, info, space, truth)
     start = late.parameter.start_day
-    assert late.kind == "productivity_change" and 0.6 <= start / info.end_days <= 0.7
+    assert late.kind == "productivity_change" and 0.77 <= start / info.end_days <= 0.85
     assert late.candidate.details["generated"] == "late_productivity"
     assert generate("two_kinds", seed, info, space, truth)[1].value == two[1].value  # seeded
 

@@ -18,6 +18,9 @@ generator            the truth hides                                        a ri
                      one of the library's boxes, centred or moved)          coincides with it
 ``relperm_endpoint`` the water curve's critical saturation moved by        the relative-
                      +-0.05-0.10 (end-point scaling, not a shape change)    permeability family
+``relperm_scaling``  the water or gas curve's relative permeability         the relative-
+                     multiplied (x0.3-0.5 or x2-3, capped at 1), not        permeability family,
+                     reshaped                                               that phase
 ``two_kinds``        two library effects of different kinds at once        both, each by kind
 ``contact``          the initial water-oil contact moved (EQUIL item 3,    ``unexplained``
                      +-0.3-0.8 % of its depth): no family makes that        (or none, when
@@ -30,8 +33,9 @@ generator            the truth hides                                        a ri
                      report date in 20-50 % of the schedule on (WPIMULT    change family, that
                      x0.15-0.35 or x3-6: damage or a stimulation)           well, its start
                                                                             date within 92 days
-``late_productivity`` the same from 60-70 % of the schedule on: mostly      the same
-                     after a fitted window of 75 % of the record
+``late_productivity`` the same from 77-85 % of the schedule on: after a      the same, named on
+                     fitted window of 75 % of the record, so only a         a later window
+                     later window holds it
 ==================== ===================================================== ==================
 
 Each effect is a :class:`hmcore.diagnosis.hidden.HiddenEffect` whose candidate's ``kind`` is the
@@ -58,7 +62,7 @@ from hmcore.parameters import Parameter, ParameterSpace
 from hmcore.results import natural_key
 
 GENERATORS = ("partial_fault", "offcentre_region", "relperm_endpoint", "two_kinds", "contact",
-              "dated_productivity", "late_productivity", "pvt")
+              "dated_productivity", "late_productivity", "pvt", "relperm_scaling")
 START_TOLERANCE_DAYS = 92.0
 """A dated cause names a dated effect when its start is this close (about a quarter)."""
 TWO_KINDS_FROM = ("well_skin", "regional_permeability", "layer_permeability",
@@ -84,7 +88,9 @@ def generate(name: str, seed: int, info: DeckInfo, space: ParameterSpace,
         a, b = rng.choice(len(offered), size=2, replace=False)
         return [draw_effect(offered[int(k)], seed, info, space, values) for k in (a, b)]
     c, value = {"partial_fault": _partial_fault, "offcentre_region": _offcentre_region,
-                "relperm_endpoint": _relperm_endpoint, "contact": _contact, "pvt": _pvt,
+                "relperm_endpoint": _relperm_endpoint,
+                "relperm_scaling": lambda r, i, s: _relperm_scaling(r, i, s, seed),
+                "contact": _contact, "pvt": _pvt,
                 "dated_productivity": _dated_productivity,
                 "late_productivity": _late_productivity}[name](rng, info, space)
     return [HiddenEffect(c, value)]
@@ -194,6 +200,34 @@ def _relperm_endpoint(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candi
     return c, shift
 
 
+def _relperm_scaling(rng, info: DeckInfo, space: ParameterSpace,
+                     seed: int) -> tuple[Candidate, float]:
+    """The water or the gas curve (of those the deck has) multiplied, its shape kept: the
+    library reshapes the curves (a power law), it does not scale them. The phase takes turns
+    with the seed (stratified: any two consecutive seeds scale both curves of a deck that has
+    both); the strength is drawn."""
+    phases = []
+    for phase, tables in (("water", ("SWOF", "SWFN")), ("gas", ("SGOF", "SGFN"))):
+        table = next((t for t in tables if t in info.keyword_names), None)
+        if table is not None:
+            phases.append((phase, table))
+    if not phases:
+        raise ValueError(f"the deck {info.path} has no SWOF, SWFN, SGOF or SGFN table to scale")
+    phase, table = phases[seed % len(phases)]
+    short = "krw" if phase == "water" else "krg"
+    lo, hi = (0.3, 0.5) if rng.random() < 0.6 else (2.0, 3.0)
+    p = Parameter(name=f"hidden_{short}_scale", kind="relperm", keywords=(table,), item=2,
+                  mode="scale", low=0.1, high=10.0,
+                  description=f"{short} of {table} multiplied (capped at 1)")
+    value = _log_uniform(rng, lo, hi)
+    c = Candidate(f"relperm_scaling:{phase}:x{value:.3f}", "relative_permeability", p, (), (),
+                  f"the {phase} relative permeability is {value:.2f} times the model's over "
+                  f"the whole curve ({short} of {table}, capped at 1): a scale, not a shape",
+                  details={"generated": "relperm_scaling", "expect_wells": [],
+                           "expect_ids": [f"relative_permeability:{phase}"]})
+    return c, value
+
+
 def _rows_below_critical(info: DeckInfo, table: str) -> bool:
     """Whether the first ``table`` (SWOF / SWFN) has rows below the critical water saturation,
     so that a negative end-point shift changes it (the synthetic deck's starts there: without
@@ -263,7 +297,8 @@ def _dated_productivity(rng, info: DeckInfo, space: ParameterSpace,
 
 
 def _late_productivity(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
-    """A productivity change from 60-70 % of the schedule on: most of its signal lies after a
-    fitted window of 75 % of the record, so a diagnosis that stops at that window sees little
-    of it (issue 18, point 1: take the longer record)."""
-    return _dated_productivity(rng, info, space, (0.6, 0.7), "late_productivity")
+    """A productivity change from 77-85 % of the schedule on: after a fitted window of 75 % of
+    the record, so a diagnosis that stops at that window sees none of it in the history it
+    fits, only in the held-back part (issue 18, point 1: take the longer record). (The sweep's
+    rows before 2026-11-26 14:00 drew it from 60-70 %, inside the first window.)"""
+    return _dated_productivity(rng, info, space, (0.77, 0.85), "late_productivity")
