@@ -659,6 +659,41 @@ def test_an_effect_only_the_held_back_history_shows_is_found_on_a_later_window(t
     assert control["causes"][0]["kind"] == "none" and control["windows"] == []
 
 
+def test_the_origin_rolls_on_until_a_window_names_the_cause(tmp_path):
+    """A rolling origin: the effect starts after the first later window ends too (85 % of the
+    record; windows end at 1350, at 80 % and at 90 %). The 80 % window sees nothing of it in
+    its fitted history and still misses its held-back history, so the diagnosis goes on to the
+    90 % window, which names it; each window is listed in time order. With the 80 % window
+    alone the answer stays unnamed and says why it stopped."""
+    from hmcore.diagnosis import DiagnosisSettings, diagnose
+    from hmcore.diagnosis.extensions import build_candidates
+    from hmcore.diagnosis.hidden import synthetic_deck_info
+
+    cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
+                                               ParameterSpace.reference(), {"skin": 4.0})}
+    (tmp_path / "p").mkdir()
+    probe, _, _ = _linear_case(tmp_path / "p")  # the record's span
+    days = probe.informative.days.to_numpy(float)
+    d0, d1 = float(days.min()), float(days.max())
+    start = d0 + 0.85 * (d1 - d0)
+    case, sim, _ = _linear_case(tmp_path, cands["well_skin:PROD3"].parameter, 30.0,
+                                hidden_from=start)
+    one = diagnose(case, sim.evaluate_batch,
+                   settings=DiagnosisSettings(plots=False, later_origins=(0.8,)))
+    assert [w["fitted_to_day"] for w in one["windows"]] == [1350, pytest.approx(
+        d0 + 0.8 * (d1 - d0))]
+    assert not one["accepted"] and one["named_on"] is None
+    assert "no later origin" in one["no_further_window"], one["no_further_window"]
+    doc = diagnose(case, sim.evaluate_batch,
+                   settings=DiagnosisSettings(plots=False, later_origins=(0.8, 0.9)))
+    ends = [w["fitted_to_day"] for w in doc["windows"]]
+    assert ends == sorted(ends) and len(ends) == 3, doc["windows"]
+    assert [w["accepted"] for w in doc["windows"][:2]] == [[], []]
+    assert doc["selected"]["id"] == "well_skin:PROD3", doc["verdict"]
+    assert doc["named_on"]["fitted_to_day"] == ends[2] > start
+    assert "fitted to day 1350 and" in doc["verdict"]
+
+
 def test_a_productivity_change_from_a_date_is_named_with_its_start(tmp_path):
     """PROD3's completion changes at day 900, inside the fitted window (to day 1350): the
     date scan of its well-skin probe finds the start, the dated candidate (WPIMULT from that
@@ -683,6 +718,12 @@ def test_a_productivity_change_from_a_date_is_named_with_its_start(tmp_path):
     assert doc["selected"]["id"] == first["id"]
     assert doc["accepted"][0]["start_day"] == first["start_day"]
     assert doc["statistic"]["cause"] == first["id"] and doc["statistic"]["vs_none"]["dof"] == 2
+    # its factor and its date: the line is chi-square(2) at the one-parameter line's tail
+    from scipy.stats import chi2
+    line = chi2.isf(chi2.sf(doc["settings"]["fit_threshold"], 1), 2)
+    assert doc["statistic"]["vs_none"]["line"] == pytest.approx(line)
+    assert doc["candidates_recalibrated"][first["id"]]["fit_line"] == pytest.approx(line)
+    assert line > doc["settings"]["fit_threshold"] + 2
     assert "from day" in doc["verdict"]
     g = doc["gain"]
     assert g["heldout_after"] < g["heldout_before"]

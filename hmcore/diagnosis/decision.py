@@ -66,6 +66,18 @@ def heldout_decisive_drop(n_heldout: int, s: DiagnosisSettings) -> float:
 
 
 # ----------------------------------------------------------------------------- the statistic
+def fit_line(s: DiagnosisSettings, dof: int = 1) -> float:
+    """The line a recalibrated cause's fitted-SSR drop must pass: ``s.fit_threshold`` for one
+    parameter; for ``dof`` > 1 (a dated cause: its factor and the date the scan chose) the
+    chi-square(``dof``) quantile at the same tail probability, so that every cause faces the
+    same false-alarm rate (15.1 over 30 candidates is 18.4 with 2 degrees of freedom)."""
+    if dof <= 1:
+        return float(s.fit_threshold)
+    from scipy.stats import chi2
+
+    return float(chi2.isf(chi2.sf(s.fit_threshold, 1), dof))
+
+
 def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, ...],
               base_ssr_fit: float, n_tests: int, s: DiagnosisSettings,
               dated: set[str] = frozenset(), n_noise: int | None = None) -> dict | None:
@@ -73,7 +85,8 @@ def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, .
     of ``confirmed_ok``, else the best fit): against no extension, the likelihood ratio of the
     fitted history (the whitened SSR it removes, ``2 log LR`` under the noise model) with its
     chi-square p-value (1 degree of freedom; 2 for a dated cause, whose date was chosen) and
-    that p-value over the ``n_tests`` candidates (Bonferroni), beside the line ``fit_threshold``;
+    that p-value over the ``n_tests`` candidates (Bonferroni), beside the line of its degrees of
+    freedom (:func:`fit_line`);
     against the runner-up (the next best recalibrated fit, the same number of parameters), the
     difference of their fitted SSRs, its evidence ratio ``exp(d / 2)``, beside ``tie_band``.
     With ``n_noise`` (the fitted points that are measurement noise: the SSR a model right to
@@ -96,7 +109,7 @@ def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, .
            "vs_none": {"lr": lr, "dof": dof, "p": p, "p_family": min(1.0, n_tests * p),
                        "excess": excess, "share": share,
                        "tests": int(n_tests), "false_alarm": s.false_alarm,
-                       "line": s.fit_threshold, "beyond": bool(lr > s.fit_threshold)},
+                       "line": fit_line(s, dof), "beyond": bool(lr > fit_line(s, dof))},
            "vs_runner_up": None}
     runner = next((k for k in by_fit if k != top), None)
     if runner is not None:

@@ -42,6 +42,7 @@ import numpy as np
 from hmcore.deck_info import DeckInfo
 from hmcore.diagnosis.recalibrate import Coordinates
 from hmcore.eclipse_lexer import expand_repeats, include_target, records, split_blocks
+from hmcore.includes import resolve_include
 from hmcore.parameters import Parameter, ParameterSpace
 from hmcore.results import natural_key
 
@@ -129,8 +130,7 @@ def deck_blocks(info: DeckInfo) -> dict[str, list[list[str]]]:
             if block.keyword == "INCLUDE":
                 target = include_target(block)
                 if target:
-                    p = Path(target)
-                    visit(p if p.is_absolute() else (info.path.parent / p).resolve())
+                    visit(resolve_include(target, path, info.path.parent))
             elif block.keyword in wanted:
                 found.setdefault(block.keyword, []).extend(
                     [expand_repeats(r) for r in records(block.body)])

@@ -6,7 +6,9 @@ the cause.
 
 ``DiagnosisSettings.later_origins`` are the ends of the later fitted windows, as fractions of
 the record (first to last observed day); the first that lies beyond the current end and
-leaves at least ``later_min_heldout`` measured points to hold back is used. The later window
+leaves at least ``later_min_heldout`` measured points to hold back is used, then the next
+beyond that one while no window names a cause (:func:`hmcore.diagnosis.rounds.diagnose_all`
+runs them). Each later window
 starts from the calibrated values of the earlier one (polished on the longer record) and is
 judged by the same rules on its own held-back data. Plain functions; nothing here simulates.
 """
@@ -48,23 +50,27 @@ def later_case(case: Case, origin: float) -> Case:
     return dataclasses.replace(case, history_end_days=float(origin))
 
 
-def combine(doc1: dict, doc2: dict) -> tuple[dict, bool]:
-    """The diagnosis of both windows, and whether the later one named the answer (its
-    document is then the answer, with the earlier window summarised)."""
-    windows = [_window(doc1), _window(doc2)]
-    e1, e2 = doc1["history_end_days"], doc2["history_end_days"]
-    if doc2.get("accepted"):
-        doc = copy.deepcopy(doc2)
-        doc["windows"], doc["named_on"] = windows, {"fitted_to_day": e2}
-        doc["verdict"] = (f"fitted to day {e1:g}, nothing was accepted and the held-back "
+def combine(docs: list[dict]) -> tuple[dict, bool]:
+    """The diagnosis of every window, in time order, and whether the last named the answer
+    (its document is then the answer, with the earlier windows summarised; otherwise the
+    first window's, with what each later one found)."""
+    windows = [_window(d) for d in docs]
+    ends = [d["history_end_days"] for d in docs]
+    last = docs[-1]
+    if last.get("accepted"):
+        doc = copy.deepcopy(last)
+        doc["windows"], doc["named_on"] = windows, {"fitted_to_day": ends[-1]}
+        earlier = " and ".join(f"{e:g}" for e in ends[:-1])
+        doc["verdict"] = (f"fitted to day {earlier}, nothing was accepted and the held-back "
                           f"history was not fitted within noise; diagnosed again with the "
-                          f"history fitted to day {e2:g} (held back after): "
-                          + doc2["verdict"])
+                          f"history fitted to day {ends[-1]:g} (held back after): "
+                          + last["verdict"])
         return doc, True
-    doc = copy.deepcopy(doc1)
+    doc = copy.deepcopy(docs[0])
     doc["windows"], doc["named_on"] = windows, None
-    doc["verdict"] += (f". Diagnosed again with the history fitted to day {e2:g}: "
-                       + doc2["verdict"])
+    for d, e in zip(docs[1:], ends[1:]):
+        doc["verdict"] += f". Diagnosed again with the history fitted to day {e:g}: " + \
+            d["verdict"]
     return doc, False
 
 

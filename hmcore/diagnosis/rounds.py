@@ -6,11 +6,12 @@ a later window.
 2. round 2 with round 1's cause in the model, for a second cause
    (:mod:`hmcore.diagnosis.forward`);
 3. when nothing was accepted and the calibrated model misses the held-back history beyond
-   noise, the same on a later fitted window (:mod:`hmcore.diagnosis.origins`).
+   noise, the same on a later fitted window, and on the next while none names a cause
+   (:mod:`hmcore.diagnosis.origins`: a rolling origin).
 
 Every step calls ``on_step(name, diagnosis)`` as it ends (``calibration``, ``residuals``,
 ``ranking``, ``extension``, ``recalibration``; round 2's prefixed ``2-``, the later window's
-``later-``), so that the Prefect flow stores each as an artifact. Every simulation of every
+``later-``, the next ones' ``later3-``, ...), so that the Prefect flow stores each as an artifact. Every simulation of every
 round counts against the one budget. Nothing here simulates: ``evaluate_batch`` is injected.
 """
 
@@ -106,29 +107,39 @@ def diagnose_all(case: Case, evaluate_batch: EvaluateBatch, *, calibrated: dict 
                                    for r in results)
         return results
 
-    out = diagnose_window(case, counted, s, calibrated, initial, log, on_step)
-    origin = origins.later_origin(out.diagnosis.case, out.document, s)
-    left = None if s.budget is None else s.budget - count["runs"]
-    if isinstance(origin, float) and left is not None and left < 1:
-        origin = "the budget is spent"
-    if isinstance(origin, float):
-        later = origins.later_case(out.diagnosis.case, origin)
-        s2 = dataclasses.replace(s, budget=left)
-        if budget_problem(later, s2, True, "budget") is not None:
-            origin = f"the budget left ({left} calls) cannot cover a later window"
-        else:
-            log(f"later origin: the history fitted to day {origin:g}")
-            try:
-                out2 = diagnose_window(later, counted, s2, out.document["calibrated"], None,
-                                       lambda msg: log(f"later window: {msg}"), on_step,
-                                       "later-")
-            except RuntimeError as exc:  # the first window's answer stands
-                origin = f"the later window (fitted to day {origin:g}) failed: {exc}"
-            else:
-                doc, named = origins.combine(out.document, out2.document)
-                out = out2 if named else out
-                out = Outcome(doc, out.diagnosis, out.final)
-    if isinstance(origin, str):
+    out = last = diagnose_window(case, counted, s, calibrated, initial, log, on_step)
+    docs = [out.document]
+    while True:  # a rolling origin: later windows in time order, until one names a cause
+        origin = origins.later_origin(last.diagnosis.case, last.document, s)
+        left = None if s.budget is None else s.budget - count["runs"]
+        if isinstance(origin, float) and left is not None and left < 1:
+            origin = "the budget is spent"
+        if isinstance(origin, float):
+            later = origins.later_case(last.diagnosis.case, origin)
+            s2 = dataclasses.replace(s, budget=left)
+            if budget_problem(later, s2, True, "budget") is not None:
+                origin = f"the budget left ({left} calls) cannot cover a later window"
+        if isinstance(origin, str):
+            break
+        prefix = "later-" if len(docs) == 1 else f"later{len(docs)}-"
+        log(f"later origin: the history fitted to day {origin:g}")
+        try:
+            last = diagnose_window(later, counted, s2, last.document["calibrated"], None,
+                                   lambda msg, p=prefix: log(f"{p[:-1]} window: {msg}"),
+                                   on_step, prefix)
+        except RuntimeError as exc:  # the earlier windows' answer stands
+            origin = f"the later window (fitted to day {origin:g}) failed: {exc}"
+            break
+        docs.append(last.document)
+        if last.document.get("accepted"):
+            break
+    if len(docs) > 1:
+        doc, named = origins.combine(docs)
+        out = last if named else out
+        out = Outcome(doc, out.diagnosis, out.final)
+        if not named:  # why the rolling origin stopped there
+            out.document["no_further_window"] = origin
+    else:
         out.document["windows"], out.document["named_on"] = [], None
         out.document["no_later_window"] = origin
     out.document["cost"] = {**out.document.get("cost", {}), "simulations": count["runs"],

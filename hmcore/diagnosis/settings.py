@@ -47,7 +47,7 @@ class DiagnosisSettings:
     the candidates of its kinds and its dated ones. 0.003 was set on the synthetic controls and
     PUNQ-S3's measured history, where the largest of ~30 candidates scored 2-4: over 30
     candidates the line is chi2 15.1 (the fixed 15 of before), a margin of about four for the
-    imperfect noise model; with ``--kinds well_skin`` (4 candidates) it is 11.3."""
+    imperfect noise model; with ``--kinds well_skin`` (4 candidates) it is 11.4."""
     chi2_threshold: float | None = None
     """A candidate is beyond noise when its score test removes more than this (chi2 units);
     None: derived (:func:`noise_line` of the diagnosis's candidates at ``false_alarm``)."""

@@ -601,7 +601,8 @@ class Diagnosis:
         d_fit = base_sc["ssr_fit"] - sc["ssr_fit"]
         d_ho = base_sc["ssr_heldout"] - sc["ssr_heldout"]
         e_ho_b, e_ho_a = base_sc["E_heldout"], sc["E_heldout"]
-        fit_ok = d_fit > s.fit_threshold
+        line = decision.fit_line(s, 2 if c.details.get("start_day") is not None else 1)
+        fit_ok = d_fit > line
         ho_ok, quiet = decision.heldout_confirms(base_sc["ssr_heldout"], sc["ssr_heldout"],
                                                  e_ho_b, e_ho_a, self.obs.n_noise("heldout"), s)
         value = run.values.get(c.name, c.neutral)
@@ -617,8 +618,8 @@ class Diagnosis:
             "delta_ssr_fit": d_fit, "delta_ssr_heldout": d_ho,
             "fit_before": base_sc["E"], "fit_after": sc["E"],
             "heldout_before": e_ho_b, "heldout_after": e_ho_a,
-            "fit_beyond_noise": bool(fit_ok), "heldout_beyond_noise": bool(ho_ok),
-            "open_end": open_end(c, value, s.open_end),
+            "fit_line": line, "fit_beyond_noise": bool(fit_ok),
+            "heldout_beyond_noise": bool(ho_ok), "open_end": open_end(c, value, s.open_end),
             "heldout_within_noise_before": bool(quiet),
             "per_well_response_after": sc["per_well_response"],
             "per_well_response_heldout_after": decision.per_well_heldout(self.case,
