@@ -62,7 +62,7 @@ def load(case_dir: Path):
 
 
 def tally(cases: list[Path]) -> Tally:
-    from hmcore.diagnosis.hidden import _described, names
+    from hmcore.diagnosis.hidden import described, names
 
     t = Tally()
     for case_dir in cases:
@@ -82,7 +82,7 @@ def tally(cases: list[Path]) -> Tally:
         def right(cid: str) -> bool:
             cause = causes.get(cid)
             return cause is not None and any(
-                e.kind != "unexplained" and names(_described(cause, doc), e) for e in effects)
+                e.kind != "unexplained" and names(described(cause, doc), e) for e in effects)
 
         for cid, r in recal.items():
             line = r.get("fit_line", s["fit_threshold"])

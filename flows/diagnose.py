@@ -5,7 +5,8 @@ artifacts are stored as versioned artifacts of the campaign (steps ``diagnosis-c
 ``diagnosis-recalibration``, ``diagnosis-report``; the report holds ``diagnosis.json``). The
 rounds and windows of :mod:`hmcore.diagnosis.rounds` store theirs the same way: a second
 cause's round as ``diagnosis-2-calibration`` ... ``diagnosis-2-recalibration``, a later fitted
-window as ``diagnosis-later-...`` (and its second round ``diagnosis-later-2-...``).
+window as ``diagnosis-later-...`` (and its second round ``diagnosis-later-2-...``), a third
+window (the origin rolled on) as ``diagnosis-later3-...``.
 
 ``diagnose_command`` is the ``hmflow diagnose`` command (register it on the CLI's Typer app).
 """

@@ -429,7 +429,7 @@ def _box(cause: dict):
             or cause.get("box"))
 
 
-def _described(cause: dict, doc: dict) -> dict:
+def described(cause: dict, doc: dict) -> dict:
     """``cause`` with its ``machine`` record, from the diagnosis's ranked causes when it has
     none (an accepted or selected cause carries its id, not its parameter)."""
     if cause.get("machine"):
@@ -485,7 +485,7 @@ def judge_effects(doc: dict, effects: list[HiddenEffect], signal: dict | None = 
     invisible = not (signal or {}).get("visible_in_fitted_history", True)
     no_family = ("unexplained", "none") if invisible else ("unexplained",)
     named = {e.candidate.id: (first["kind"] in no_family if e.kind == "unexplained"
-                              else any(names(_described(a, doc), e) for a in accepted))
+                              else any(names(described(a, doc), e) for a in accepted))
              for e in effects}
     g = doc["gain"]
     held = g["heldout_after"] is not None and g["heldout_before"] is not None and \
@@ -529,7 +529,7 @@ def judge(doc: dict, effect: HiddenEffect | None, signal: dict | None = None) ->
     same = names(first, effect)
     sel = doc["selected"] is not None and (  # the same candidate, or for a region the place
         doc["selected"]["id"] == h.id or (h.kind == "regional_permeability"
-                                          and names(_described(doc["selected"], doc), effect)))
+                                          and names(described(doc["selected"], doc), effect)))
     held_e = (g["heldout_after"] is not None and g["heldout_before"] is not None
               and g["heldout_after"] < g["heldout_before"])
     truth_e = (signal or {}).get("truth_E_heldout")

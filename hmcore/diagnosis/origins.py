@@ -60,8 +60,9 @@ def combine(docs: list[dict]) -> tuple[dict, bool]:
     if last.get("accepted"):
         doc = copy.deepcopy(last)
         doc["windows"], doc["named_on"] = windows, {"fitted_to_day": ends[-1]}
-        earlier = " and ".join(f"{e:g}" for e in ends[:-1])
-        doc["verdict"] = (f"fitted to day {earlier}, nothing was accepted and the held-back "
+        earlier = ("day " if len(ends) == 2 else "days ") + " and ".join(f"{e:g}"
+                                                                         for e in ends[:-1])
+        doc["verdict"] = (f"fitted to {earlier}, nothing was accepted and the held-back "
                           f"history was not fitted within noise; diagnosed again with the "
                           f"history fitted to day {ends[-1]:g} (held back after): "
                           + last["verdict"])

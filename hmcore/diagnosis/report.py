@@ -73,7 +73,9 @@ def _windows(doc: dict, h2: str) -> list[str]:
     """The fitted windows diagnosed, in time order, and which named the answer."""
     wins = doc.get("windows") or []
     if not wins:
-        return []
+        why = doc.get("no_later_window")
+        return ([f"No later fitted window: {why}.", ""]
+                if why and not doc.get("accepted") else [])
     named = (doc.get("named_on") or {}).get("fitted_to_day")
     lines = [f"{h2} Fitted windows (rolling origin)", "",
              "| history fitted to day | accepted | first cause | held-back fitted within noise "
@@ -83,7 +85,10 @@ def _windows(doc: dict, h2: str) -> list[str]:
                      f"{w['first_cause'] or '-'} | "
                      f"{'yes' if w['heldout_within_noise'] else 'no'} | "
                      f"{'yes' if named == w['fitted_to_day'] else ''} |")
-    return lines + [""]
+    lines.append("")
+    if doc.get("no_further_window"):
+        lines += [f"No further window: {doc['no_further_window']}.", ""]
+    return lines
 
 
 def ranking_table(doc: dict, most: int = 15) -> str:

@@ -10,9 +10,9 @@ a later window.
    (:mod:`hmcore.diagnosis.origins`: a rolling origin).
 
 Every step calls ``on_step(name, diagnosis)`` as it ends (``calibration``, ``residuals``,
-``ranking``, ``extension``, ``recalibration``; round 2's prefixed ``2-``, the later window's
-``later-``, the next ones' ``later3-``, ...), so that the Prefect flow stores each as an artifact. Every simulation of every
-round counts against the one budget. Nothing here simulates: ``evaluate_batch`` is injected.
+``ranking``, ``extension``, ``recalibration``; round 2's prefixed ``2-``, the second
+window's ``later-``, the third's ``later3-``, ...), so that the Prefect flow stores each as
+an artifact. Every simulation of every round counts against the one budget. Nothing here simulates: ``evaluate_batch`` is injected.
 """
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ def diagnose_all(case: Case, evaluate_batch: EvaluateBatch, *, calibrated: dict 
                 origin = f"the budget left ({left} calls) cannot cover a later window"
         if isinstance(origin, str):
             break
-        prefix = "later-" if len(docs) == 1 else f"later{len(docs)}-"
+        prefix = "later-" if len(docs) == 1 else f"later{len(docs) + 1}-"  # window 3: later3-
         log(f"later origin: the history fitted to day {origin:g}")
         try:
             last = diagnose_window(later, counted, s2, last.document["calibrated"], None,

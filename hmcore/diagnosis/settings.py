@@ -60,7 +60,9 @@ class DiagnosisSettings:
     PUNQ-S3's measured history no candidate reached 5, so the screen costs them nothing."""
     fit_threshold: float | None = None
     """A confirmed extension must lower the fitted SSR by more than this; None: derived, the
-    same line as ``chi2_threshold`` (a likelihood-ratio test of one more parameter)."""
+    same line as ``chi2_threshold`` (a likelihood-ratio test of one more parameter). A dated
+    cause (two: its factor and its date) must pass the chi-square(2) line at the same tail
+    probability (:func:`hmcore.diagnosis.decision.fit_line`)."""
     partial_share: float = 0.5
     """The verdict says a selected cause is partial when it removes less than this share of
     the fitted misfit beyond noise (the calibrated model's SSR less its noise expectation; the
@@ -97,8 +99,9 @@ class DiagnosisSettings:
     later_origins: tuple[float, ...] = (0.875,)
     """When a diagnosis accepts nothing and its calibrated model misses the held-back history
     beyond noise, it diagnoses again with the fitted window ending at the first of these
-    fractions of the record (first to last observed day) that lies beyond the current end
-    (:mod:`hmcore.diagnosis.origins`; empty: never)."""
+    fractions of the record (first to last observed day) that lies beyond the current end,
+    and so on to the next while no window names a cause (a rolling origin, in increasing
+    order; :mod:`hmcore.diagnosis.origins`; empty: never)."""
     later_min_heldout: int = 20
     """... leaving at least this many observed points to hold back."""
     dated_max: int = 2
@@ -216,6 +219,10 @@ class DiagnosisSettings:
         if bad:
             problems.append(Problem("later_origins", f"fractions of the record must lie in "
                                     f"(0, 1), got {bad}", "give e.g. (0.875,), or () for none"))
+        if list(self.later_origins) != sorted(set(self.later_origins)):
+            problems.append(Problem("later_origins", "the ends of the later windows roll on in "
+                                    f"time order: they must increase, got {list(self.later_origins)}",
+                                    f"give {tuple(sorted(set(self.later_origins)))}"))
         if not 0.0 < self.false_alarm < 1.0:
             problems.append(Problem("false_alarm", f"must lie in (0, 1), got {self.false_alarm}",
                                     "give a probability such as 0.003"))

@@ -569,7 +569,8 @@ class Diagnosis:
             self.confirmed[cid], self.confirmed_runs[cid] = self._record(
                 cid, k, lm, refined.get(k), restarts.get(cid, {}), starts[cid][1], base_sc)
         self.recalibration = {"confirmed": self.confirmed, "thresholds": {
-            "fit": s.fit_threshold, "heldout": s.heldout_threshold}}
+            "fit": s.fit_threshold, "fit_dated": decision.fit_line(s, 2),
+            "heldout": s.heldout_threshold}}
         self.timings["recalibrate"] = time.perf_counter() - t0
         return self.recalibration
 
