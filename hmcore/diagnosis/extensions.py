@@ -21,7 +21,8 @@ Families (see :func:`build_candidates`):
 ``fault_transmissibility``  MULTX (MULTY) on a plane i = i0 (j = j0) between two groups of
                             wells, through all layers
 ``relative_permeability``   exponent of the water table's krw (SWOF/SWFN column 2) and of the
-                            gas table's krg (SGOF/SGFN column 2)
+                            gas table's krg (SGOF/SGFN column 2): the curve's shape; and a
+                            factor on each (``...:scale``, capped at 1): its level
 ``productivity_change``     the productivity index of one well multiplied from a report date
                             on (``WPIMULT`` in the schedule, kind ``wpimult`` with
                             ``start_day``): damage, scale or a stimulation during the history.
@@ -57,6 +58,9 @@ PERMZ_BOUNDS = (0.01, 100.0)
 AQUIFER_BOUNDS = (0.05, 20.0)
 FAULT_BOUNDS = (1e-4, 1.0)
 RELPERM_BOUNDS = (0.4, 3.0)
+RELPERM_SCALE_BOUNDS = (0.2, 5.0)
+RELPERM_SCALE_PROBE = 0.6
+"""Probe of a relative-permeability factor: down, since a factor up is capped at 1."""
 WELL_SKIN_BOUNDS = (-5.0, 30.0)
 PI_BOUNDS = (0.05, 20.0)
 LIMIT_ENDS = {"fault_transmissibility": ("low", "high"), "vertical_permeability": ("low",),
@@ -398,6 +402,14 @@ def relative_permeability(info: DeckInfo, space: ParameterSpace,
                              f"({short} in {table} rises earlier or later with saturation)",
                              1.0, PROBE["relative_permeability"],
                              {"phase": phase, "table": table}))
+        p = Parameter(name=f"{short}_scale", kind="relperm", keywords=(table,), item=2,
+                      mode="scale", low=RELPERM_SCALE_BOUNDS[0], high=RELPERM_SCALE_BOUNDS[1],
+                      description=f"factor on the {short} curve of {table} (capped at 1)")
+        out.append(Candidate(f"relative_permeability:{phase}:scale", "relative_permeability", p,
+                             (), (), f"the {phase} relative permeability is higher or lower "
+                             f"than the model says over the whole curve ({short} in {table} "
+                             "times a factor, its shape kept)",
+                             1.0, RELPERM_SCALE_PROBE, {"phase": phase, "table": table}))
     return out
 
 

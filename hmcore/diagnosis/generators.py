@@ -196,7 +196,8 @@ def _relperm_endpoint(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candi
                   f"the water relative permeability starts at another saturation (SWCR "
                   f"{shift:+.3f}): an end point, not the curve's shape",
                   details={"generated": "relperm_endpoint", "expect_wells": [],
-                           "expect_ids": ["relative_permeability:water"]})
+                           "expect_ids": ["relative_permeability:water",
+                                          "relative_permeability:water:scale"]})
     return c, shift
 
 
@@ -224,7 +225,8 @@ def _relperm_scaling(rng, info: DeckInfo, space: ParameterSpace,
                   f"the {phase} relative permeability is {value:.2f} times the model's over "
                   f"the whole curve ({short} of {table}, capped at 1): a scale, not a shape",
                   details={"generated": "relperm_scaling", "expect_wells": [],
-                           "expect_ids": [f"relative_permeability:{phase}"]})
+                           "expect_ids": [f"relative_permeability:{phase}",
+                                          f"relative_permeability:{phase}:scale"]})
     return c, value
 
 

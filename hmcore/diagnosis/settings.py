@@ -241,8 +241,9 @@ class DiagnosisSettings:
 
 
 DEFAULT_TESTS = 30
-"""The candidates a full search of a small field has (the synthetic case: 28 and 2 dated):
-the count the noise lines assume until a diagnosis counts its own."""
+"""About the candidates a full search of a small field has (the synthetic case had 28 and 2
+dated when it was set; 30 and 2 since the relative-permeability factors): the count the noise
+lines assume until a diagnosis counts its own."""
 
 
 def noise_line(n_tests: int, false_alarm: float) -> float:
