@@ -257,9 +257,11 @@ def test_extension_library_for_punq(punq_info, tmp_path):
     for c in faults:  # a plane between two non-empty groups of wells, through all layers
         a, b = c.details["groups"]
         assert a and b and c.parameter.box[4:] == (1, nz)
-    relperm = {c.details["phase"]: c.parameter for c in cands if c.kind == "relative_permeability"}
-    assert relperm["water"].keywords == ("SWFN",) and relperm["gas"].keywords == ("SGFN",)
-    assert all(p.mode == "power" and p.item == 2 for p in relperm.values())
+    relperm = {(c.details["phase"], c.parameter.mode): c.parameter for c in cands
+               if c.kind == "relative_permeability"}  # each curve's shape and level
+    assert set(relperm) == {(ph, m) for ph in ("water", "gas") for m in ("power", "scale")}
+    assert all(p.keywords == (("SWFN",) if ph == "water" else ("SGFN",)) and p.item == 2
+               for (ph, _), p in relperm.items())
     for c in cands:
         assert c.description and c.parameter.low < c.neutral <= c.parameter.high or \
             c.parameter.low <= c.neutral <= c.parameter.high
