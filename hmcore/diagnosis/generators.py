@@ -43,8 +43,11 @@ family a right answer names (``unexplained`` for no family) and whose ``details`
 generator made it and what a right answer must also name (``expect_wells``; ``expect_ids``:
 the candidates that count, where the family has several that would not; a region: a box that
 mostly coincides with the truth's, :func:`hmcore.diagnosis.hidden.boxes_agree`). Strengths are
-drawn a few times above the noise, as the library's (:data:`hidden.STRENGTH`). Pure: nothing
-here simulates; :func:`hmcore.diagnosis.hidden.write_hidden_synthetic_case` and
+drawn from the fixed ranges above, not scaled to each deck's noise: most draws show a few times
+above it, some do not (an end point the globals absorb, a small box far from the wells). Each
+draw's signal is measured when its case is written (:func:`hmcore.diagnosis.hidden.effect_signal`)
+and one the fitted history hardly shows is judged as invisible, where ``none`` is right. Pure:
+nothing here simulates; :func:`hmcore.diagnosis.hidden.write_hidden_synthetic_case` and
 ``write_hidden_deck_case`` run the truth.
 """
 
