@@ -521,7 +521,8 @@ def test_an_effect_the_library_holds_in_part_is_named_by_its_nearest_candidate(
     candidate a right answer names (the plane that parts the producers the same way; the krw
     exponent) and 0.6 one of its own, which no candidate holds: that candidate is named and
     accepted, and the generator's own judge says found. A scaled curve (``relperm_scaling``,
-    the gas one at seed 31) the library holds whole, with the factor of that curve. (Which candidate that is - the
+    the gas one at seed 31) the library holds whole, with the factor of that curve. (Which
+    candidate that is - the
     generator's ``expect_ids`` - is taken as given here; that it parts the producers as the
     hidden plane does is tested with the generators.) Where the part no candidate holds
     stays beyond noise (the barrier; the end point's is weaker and the globals absorb it),

@@ -12,7 +12,8 @@ a later window.
 Every step calls ``on_step(name, diagnosis)`` as it ends (``calibration``, ``residuals``,
 ``ranking``, ``extension``, ``recalibration``; round 2's prefixed ``2-``, the second
 window's ``later-``, the third's ``later3-``, ...), so that the Prefect flow stores each as
-an artifact. Every simulation of every round counts against the one budget. Nothing here simulates: ``evaluate_batch`` is injected.
+an artifact. Every simulation of every round counts against the one budget. Nothing here
+simulates: ``evaluate_batch`` is injected.
 """
 
 from __future__ import annotations
