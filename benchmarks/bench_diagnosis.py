@@ -93,7 +93,7 @@ def judged(doc: dict, hidden_path: Path) -> dict:
     """The judgement of a diagnosis ``doc`` against the hidden effect(s) of ``hidden_path``
     (:func:`hmcore.diagnosis.hidden.judge_effects` for generated or several effects,
     :func:`~hmcore.diagnosis.hidden.judge` for one library effect), with the effect's signal."""
-    from hmcore.diagnosis.hidden import judge, judge_effects, load_hidden_effects
+    from hmcore.diagnosis.hidden import judge, judge_effects, load_hidden_effects, visible
 
     signal = json.loads(hidden_path.read_text()).get("signal") or {}
     effects = load_hidden_effects(hidden_path)
@@ -102,7 +102,8 @@ def judged(doc: dict, hidden_path: Path) -> dict:
            else judge(doc, effects[0] if effects else None, signal))
     out.update({"signal_fit": signal.get("chi2_fit"), "signal_heldout": signal.get("chi2_heldout"),
                 "signal_fit_after_globals": signal.get("chi2_fit_after_globals"),
-                "visible": signal.get("visible_in_fitted_history"),
+                "visible": visible(signal) if signal else None,
+                "visible_in_fitted_history": signal.get("visible_in_fitted_history"),
                 "truth_E_heldout": signal.get("truth_E_heldout"),
                 "hidden_values": {e.candidate.id: e.value for e in effects}})
     return out
@@ -173,8 +174,10 @@ def _fmt(x, spec: str = ".3g") -> str:
 
 
 def _found(r: dict) -> str:
-    """yes / no; for an effect the fitted history hardly shows (``visible`` false: its signal,
-    once the globals absorb what they can, under the line), ``none`` is right too. A wrong
+    """yes / no; for an effect the data hardly show (``visible`` false: its signal, once the
+    globals absorb what they can, under the line on the fitted history and under the held-back
+    noise line on the held-back one: :func:`hmcore.diagnosis.hidden.visible`), ``none`` is
+    right too. A wrong
     answer whose model predicts the held-back history about as well as the truth (E within
     10 % of the truth's) is marked so: the data do not tell the two apart."""
     if r.get("found"):

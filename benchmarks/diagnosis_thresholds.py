@@ -62,7 +62,7 @@ def load(case_dir: Path):
 
 
 def tally(cases: list[Path]) -> Tally:
-    from hmcore.diagnosis.hidden import described, names
+    from hmcore.diagnosis.hidden import described, names, visible
 
     t = Tally()
     for case_dir in cases:
@@ -73,7 +73,7 @@ def tally(cases: list[Path]) -> Tally:
         t.cases += 1
         label = case_dir.name
         signal = json.loads((case_dir / "hidden_effect.json").read_text()).get("signal") or {}
-        quiet = not effects or not signal.get("visible_in_fitted_history", True)
+        quiet = not effects or not visible(signal)
         t.quiet += quiet
         s = doc["settings"]
         causes = {c["id"]: c for c in doc["causes"]}

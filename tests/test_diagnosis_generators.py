@@ -143,6 +143,24 @@ def _doc(accepted, first=None, before=0.02, after=0.01):
                                     "ssr_heldout_before": 1.0, "ssr_heldout_after": 1.0}}
 
 
+def test_an_effect_the_held_back_history_shows_is_visible_to_the_longer_record():
+    """A late change (nothing in the fitted history, 912 on the held-back one: synthetic
+    late_productivity 31) is visible - the diagnosis must take the longer record, and `none`
+    is not right for it; one the globals absorb on both (offcentre 33: 9 and 22 left) is not;
+    the held-back line is the diagnosis's own (3 sd of the chi-square of 260 points: 68)."""
+    from hmcore.diagnosis.hidden import visible
+
+    late = {"visible_in_fitted_history": False, "chi2_fit": 0.0, "chi2_heldout": 912.0,
+            "n_heldout_measured": 260}
+    absorbed = {"visible_in_fitted_history": False, "chi2_fit": 100.0, "chi2_heldout": 332.0,
+                "chi2_fit_after_globals": 9.0, "chi2_heldout_after_globals": 22.0,
+                "n_heldout_measured": 260}
+    assert visible(late) and not visible(absorbed)
+    assert visible({**absorbed, "chi2_heldout_after_globals": 69.0})
+    assert not visible({**absorbed, "chi2_heldout_after_globals": 67.0})
+    assert visible({**absorbed, "visible_in_fitted_history": True}) and visible(None)
+
+
 def test_the_judge_asks_each_effect_its_family_and_wells(synthetic):
     from hmcore.diagnosis.extensions import build_candidates
     from hmcore.diagnosis.generators import generate

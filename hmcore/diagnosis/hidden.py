@@ -402,6 +402,25 @@ def effect_signal(case_toml: Path, truth_globals: dict[str, float], simulator=No
 
 
 # ----------------------------------------------------------------------------- scoring a finding
+def visible(signal: dict | None) -> bool:
+    """Can a diagnosis be asked to find the effect whose :func:`effect_signal` is ``signal``?
+    When it shows in the fitted history beyond the score test's line once the globals absorb
+    what they can (``visible_in_fitted_history``), or when it shows in the held-back history
+    beyond the diagnosis's own held-back noise line (what the globals leave there, or all of it
+    when the fitted history shows nothing for them to absorb): the calibrated model then
+    misses the held-back history and the diagnosis takes the longer record (an effect that
+    starts after the fitted window). No signal: visible (nothing says otherwise)."""
+    from hmcore.diagnosis.decision import heldout_decisive_drop
+
+    s = signal or {}
+    if s.get("visible_in_fitted_history", True):
+        return True
+    held = s.get("chi2_heldout_after_globals", s.get("chi2_heldout"))
+    n = s.get("n_heldout_measured")
+    return bool(held is not None and n and
+                held >= heldout_decisive_drop(int(n), DiagnosisSettings()))
+
+
 BOX_AGREEMENT = 0.25
 """Least Jaccard index (columns in both boxes over columns in either) at which a named region
 is the hidden one (:func:`boxes_agree`)."""
@@ -481,8 +500,8 @@ def judge_effects(doc: dict, effects: list[HiddenEffect], signal: dict | None = 
         return judge(doc, effects[0] if effects else None, signal)
     accepted = doc.get("accepted") or ([doc["selected"]] if doc.get("selected") else [])
     first = doc["causes"][0]
-    # an effect of no family the fitted history hardly shows: `none` is right too
-    invisible = not (signal or {}).get("visible_in_fitted_history", True)
+    # an effect of no family the data hardly show: `none` is right too
+    invisible = not visible(signal)
     no_family = ("unexplained", "none") if invisible else ("unexplained",)
     named = {e.candidate.id: (first["kind"] in no_family if e.kind == "unexplained"
                               else any(names(described(a, doc), e) for a in accepted))
