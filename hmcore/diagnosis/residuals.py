@@ -48,6 +48,11 @@ WATER_BREAKTHROUGH_SEEN = WATER_BREAKTHROUGH_WCT + BREAKTHROUGH_SIGMAS * PUNQ_NO
 ``BREAKTHROUGH_SIGMAS`` standard deviations of the noise before breakthrough (0.02): 0.05.
 A measured water cut of 0.01 is within the noise of a dry well (1 sigma of 0.02 is 0.02)."""
 GAS_BREAKTHROUGH_RATIO = 1.2
+"""Gas breakthrough as the diagnosis sees it: the GOR 20 % above the well's initial one. The
+synthetic history's threshold is 1.10 (:data:`hmcore.synthetic.GAS_BREAKTHROUGH_GOR_RATIO`);
+1.2 is about that plus one standard deviation of the GOR noise before breakthrough (10 %),
+where water takes two. Not derived from it like the water threshold: deriving it (1.32)
+would move the noise segments of every diagnosis, left for after the generator sweep."""
 Z_BEYOND_NOISE = 3.0
 MAX_RHO = 0.9
 
