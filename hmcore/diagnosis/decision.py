@@ -102,6 +102,7 @@ def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, .
     top = confirmed_ok[0] if confirmed_ok else by_fit[0]
     lr = float(base_ssr_fit - confirmed[top]["ssr_fit_after"])
     dof = 2 if top in dated else 1
+    line = fit_line(s, dof)
     p = float(chi2.sf(max(lr, 0.0), dof))
     excess = None if n_noise is None else float(base_ssr_fit - n_noise)
     share = (None if excess is None or excess <= 0 else float(min(max(lr, 0.0) / excess, 1.0)))
@@ -109,7 +110,7 @@ def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, .
            "vs_none": {"lr": lr, "dof": dof, "p": p, "p_family": min(1.0, n_tests * p),
                        "excess": excess, "share": share,
                        "tests": int(n_tests), "false_alarm": s.false_alarm,
-                       "line": fit_line(s, dof), "beyond": bool(lr > fit_line(s, dof))},
+                       "line": line, "beyond": bool(lr > line)},
            "vs_runner_up": None}
     runner = next((k for k in by_fit if k != top), None)
     if runner is not None:

@@ -210,11 +210,8 @@ def _relperm_scaling(rng, info: DeckInfo, space: ParameterSpace,
     library reshapes the curves (a power law), it does not scale them. The phase takes turns
     with the seed (stratified: any two consecutive seeds scale both curves of a deck that has
     both); the strength is drawn."""
-    phases = []
-    for phase, tables in (("water", ("SWOF", "SWFN")), ("gas", ("SGOF", "SGFN"))):
-        table = next((t for t in tables if t in info.keyword_names), None)
-        if table is not None:
-            phases.append((phase, table))
+    phases = [(c.details["phase"], c.details["table"]) for c in build_candidates(
+        info, space, {}, ("relative_permeability",)) if c.parameter.mode == "power"]
     if not phases:
         raise ValueError(f"the deck {info.path} has no SWOF, SWFN, SGOF or SGFN table to scale")
     phase, table = phases[seed % len(phases)]
