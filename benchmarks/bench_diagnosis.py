@@ -27,7 +27,9 @@ selected, held-back misfit improved. Controls hide nothing and must report ``non
 already holds (a sweep runs in slices across sessions). ``--keep DIR``: each case's hidden
 effect, report and diagnosis JSON (gzipped) copied to ``DIR/<case>-<kind>-<seed>/``;
 ``--rejudge --jsonl FILE --keep DIR`` judges the rows again from them (after a change of the
-judge, not of the diagnosis). ``--table FILE...``: the markdown
+judge, not of the diagnosis; the answer's lead is set again first,
+:func:`hmcore.diagnosis.decision.lead_unexplained`, which reorders the stored causes and runs
+nothing - a row it changed says ``lead``). ``--table FILE...``: the markdown
 table of such files (docs/diagnosis.md). Nothing is asserted.
 """
 
@@ -105,6 +107,7 @@ def judged(doc: dict, hidden_path: Path) -> dict:
                 "visible": visible(signal) if signal else None,
                 "visible_in_fitted_history": signal.get("visible_in_fitted_history"),
                 "truth_E_heldout": signal.get("truth_E_heldout"),
+                "lead": doc.get("lead"),
                 "hidden_values": {e.candidate.id: e.value for e in effects}})
     return out
 
@@ -136,6 +139,8 @@ def rejudge(jsonl: Path, kept: Path) -> int:
     not of the diagnosis) and rewrite the file (atomically). Returns the rows judged."""
     import gzip
 
+    from hmcore.diagnosis.decision import lead_unexplained
+
     rows, n = _read_jsonl(jsonl), 0
     for r in rows:
         dest = kept / f"{r['case']}-{r['kind']}-{r['seed']}"
@@ -143,12 +148,24 @@ def rejudge(jsonl: Path, kept: Path) -> int:
                 not (dest / "hidden_effect.json").is_file():
             continue
         doc = json.loads(gzip.decompress((dest / "diagnosis.json.gz").read_bytes()))
+        doc = lead_unexplained(doc, _settings_of(doc))
         r.update(judged(doc, dest / "hidden_effect.json"))
         n += 1
     tmp = jsonl.with_suffix(".tmp")
     tmp.write_text("".join(json.dumps(r, default=str) + "\n" for r in rows))
     tmp.replace(jsonl)
     return n
+
+
+def _settings_of(doc: dict):
+    """The settings a stored diagnosis ran with, as far as :func:`rejudge` needs them (the
+    held-back noise line and the partial share; the defaults where the document predates
+    one)."""
+    from hmcore.diagnosis.settings import DiagnosisSettings
+
+    stored, s = doc.get("settings") or {}, DiagnosisSettings()
+    return DiagnosisSettings(quiet_sd=float(stored.get("quiet_sd", s.quiet_sd)),
+                             partial_share=float(stored.get("partial_share", s.partial_share)))
 
 
 def _commit() -> str | None:
@@ -216,7 +233,7 @@ def table(rows: list[dict]) -> str:
         lines.append(
             f"| {r['case']} | {r['kind']} | {r['seed']} | {hidden or '-'} | "
             f"{_fmt(r.get('signal_fit'), '.0f')} / {_fmt(r.get('signal_fit_after_globals'), '.0f')}"
-            f" | {answer}; first {first} ({win}) | {gains} | "
+            f" | {answer}; top score {first} ({win}) | {gains} | "
             f"{_found(r)} | {r.get('simulations', '-')} | "
             f"{_fmt((r.get('wall_s') or 0) / 60, '.1f')} |")
     lines += ["", "| case | kind | cases | visible | found (of the visible) | right answers "

@@ -244,6 +244,61 @@ def unexplained_cause(found: list[dict], line: float, m: int, alpha: float) -> d
             "machine": None, "confirmed": None}
 
 
+def lead_unexplained(doc: dict, s: DiagnosisSettings) -> dict:
+    """The answer's lead when an accepted cause explains only part of the data: ``doc`` (a
+    finished diagnosis document) with its ``unexplained`` cause moved first when
+
+    - round 2, with the accepted cause in the model, found residuals beyond noise that no
+      family explains (an ``unexplained`` cause after the first),
+    - the model with the accepted causes still misses the held-back history beyond noise
+      (:func:`heldout_noise_line`), and
+    - they remove less than ``s.partial_share`` of the misfit beyond noise (the whitened SSR
+      less its noise expectation, one per measured point) of the held-back history and of the
+      fitted history alike.
+
+    A cause that accounts for a minority of what the data show beyond noise is then not the
+    answer but a partial one: it stays accepted (and in the model), listed second, and the
+    verdict gives both shares. A cause that holds most of the fitted misfit stays first however
+    little of the held-back misfit it removes: a library shape that holds a partial fault only
+    in part (the fault over the whole plane) is still its best name. Idempotent; runs nothing
+    (a stored document can be given)."""
+    causes = doc.get("causes") or []
+    at = next((i for i, c in enumerate(causes) if c.get("kind") == "unexplained"), None)
+    accepted = doc.get("accepted") or []
+    g = doc.get("gain") or {}
+    n = g.get("n_heldout_measured") or 0
+    if not at or not accepted or not n or g.get("ssr_heldout_after") is None:
+        return doc
+    before, after = float(g["ssr_heldout_before"]), float(g["ssr_heldout_after"])
+    line = heldout_noise_line(n, s)
+    if after <= line or before <= n:
+        return doc
+    share = (before - after) / (before - n)
+    n_fit = g.get("n_fit_measured") or 0
+    fit_before, fit_after = g.get("ssr_fit_before"), g.get("ssr_fit_after")
+    if fit_before is None or fit_after is None or fit_before <= n_fit:
+        return doc
+    fit_share = (float(fit_before) - float(fit_after)) / (float(fit_before) - n_fit)
+    if share >= s.partial_share or fit_share >= s.partial_share:
+        return doc
+    out = dict(doc)
+    first = causes[at]
+    out["causes"] = [first] + causes[:at] + causes[at + 1:]
+    ids = " and ".join(a["id"] for a in accepted)
+    out["lead"] = {"rule": "partial", "heldout_share": share, "fit_share": fit_share,
+                   "partial_share": s.partial_share}
+    out["verdict"] = (f"unexplained: {first['description']} ({first['evidence']}). "
+                      f"{ids} explains only {100 * max(share, 0.0):.0f} % of the held-back "
+                      f"misfit beyond noise (whitened SSR {before:.0f} -> {after:.0f} over {n} "
+                      f"measured points, noise ~{n}, up to {line:.0f}) and "
+                      f"{100 * max(fit_share, 0.0):.0f} % of the fitted one: a partial answer "
+                      "at most, listed second. " + doc["verdict"])
+    if out.get("windows") and out.get("named_on"):
+        out["windows"] = [*out["windows"][:-1],
+                          {**out["windows"][-1], "first_cause": first["id"]}]
+    return out
+
+
 @dataclass(frozen=True)
 class Decision:
     """The ranked causes (``none`` marks the noise level), the selected candidate id (or

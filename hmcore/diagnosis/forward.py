@@ -132,6 +132,7 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
                                      f"in the model: {unexplained['evidence']}"})
             doc["verdict"] += (f". With {p.first} in the model, something no family explains "
                                f"remains: {unexplained['description']}")
+            doc = decision.lead_unexplained(doc, s)
         else:
             doc["verdict"] += (f". A second round with {p.first} in the model ({d2.n_runs} "
                                "simulations) found no further cause beyond noise")

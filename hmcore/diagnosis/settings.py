@@ -64,9 +64,13 @@ class DiagnosisSettings:
     cause (two: its factor and its date) must pass the chi-square(2) line at the same tail
     probability (:func:`hmcore.diagnosis.decision.fit_line`)."""
     partial_share: float = 0.5
-    """The verdict says a selected cause is partial when it removes less than this share of
-    the fitted misfit beyond noise (the calibrated model's SSR less its noise expectation; the
-    decision is not changed: a partial fault is caught that way too)."""
+    """A majority: the verdict says a selected cause is partial when it removes less than this
+    share of the fitted misfit beyond noise (the calibrated model's SSR less its noise
+    expectation; the decision is not changed: a partial fault is caught that way too). When it
+    removes less than this share of the held-back and of the fitted misfit beyond noise, the
+    model with it still misses the held-back history beyond noise, and round 2 finds residuals
+    no family explains, the answer's lead is ``unexplained`` and the cause a partial answer
+    listed second (:func:`hmcore.diagnosis.decision.lead_unexplained`)."""
     derived_lines: tuple[str, ...] = ()
     """The lines derived from ``false_alarm`` rather than given (set on construction; a
     diagnosis derives them again for its own count of candidates, :func:`with_lines`)."""
