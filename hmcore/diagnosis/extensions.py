@@ -21,8 +21,10 @@ Families (see :func:`build_candidates`):
 ``fault_transmissibility``  MULTX (MULTY) on a plane i = i0 (j = j0) between two groups of
                             wells, through all layers
 ``relative_permeability``   exponent of the water table's krw (SWOF/SWFN column 2) and of the
-                            gas table's krg (SGOF/SGFN column 2): the curve's shape; and a
-                            factor on each (``...:scale``, capped at 1): its level
+                            gas table's krg (SGOF/SGFN column 2): the curve's shape; a
+                            factor on each (``...:scale``, capped at 1): its level; and a
+                            shift of each curve's critical saturation (``...:endpoint``,
+                            SWCR / SGCR): where it starts to flow
 ``productivity_change``     the productivity index of one well multiplied from a report date
                             on (``WPIMULT`` in the schedule, kind ``wpimult`` with
                             ``start_day``): damage, scale or a stimulation during the history.
@@ -61,6 +63,10 @@ RELPERM_BOUNDS = (0.4, 3.0)
 RELPERM_SCALE_BOUNDS = (0.2, 5.0)
 RELPERM_SCALE_PROBE = 0.6
 """Probe of a relative-permeability factor: down, since a factor up is capped at 1."""
+RELPERM_ENDPOINT_BOUNDS = (-0.2, 0.2)
+RELPERM_ENDPOINT_PROBE = 0.05
+"""Probe of a critical-saturation shift (saturation units): up, since a table that starts at
+its critical saturation has no room below it."""
 WELL_SKIN_BOUNDS = (-5.0, 30.0)
 PI_BOUNDS = (0.05, 20.0)
 LIMIT_ENDS = {"fault_transmissibility": ("low", "high"), "vertical_permeability": ("low",),
@@ -410,6 +416,17 @@ def relative_permeability(info: DeckInfo, space: ParameterSpace,
                              f"than the model says over the whole curve ({short} in {table} "
                              "times a factor, its shape kept)",
                              1.0, RELPERM_SCALE_PROBE, {"phase": phase, "table": table}))
+        crit = "SWCR" if phase == "water" else "SGCR"
+        p = Parameter(name=f"{short}_{crit.lower()}_shift", kind="relperm", keywords=(table,),
+                      item=2, mode="endpoint", low=RELPERM_ENDPOINT_BOUNDS[0],
+                      high=RELPERM_ENDPOINT_BOUNDS[1],
+                      description=f"shift of the critical saturation of the {short} curve of "
+                                  f"{table} ({crit})")
+        out.append(Candidate(f"relative_permeability:{phase}:endpoint", "relative_permeability",
+                             p, (), (), f"the {phase} phase starts to flow at another saturation "
+                             f"than the model says (the critical saturation of {short} in "
+                             f"{table}, {crit}, moved; the curve's end points kept)",
+                             0.0, RELPERM_ENDPOINT_PROBE, {"phase": phase, "table": table}))
     return out
 
 

@@ -4,7 +4,9 @@ mechanism of a known family, two effects at once, or no family at all (issue 18)
 The library searches a skin on one well, a box of +-3 cells centred on a well, a whole layer,
 a full fault plane midway between well columns, a power law on krw / krg, an aquifer's
 strength. A diagnosis that only finds effects drawn from that list proves little, so these
-generators draw, from a seed:
+generators draw, from a seed (the relative-permeability family has since grown a factor and a
+critical-saturation shift on each curve, so ``relperm_scaling`` and ``relperm_endpoint`` now
+ask it to tell its own parameters apart - and the globals not to absorb them):
 
 ==================== ===================================================== ==================
 generator            the truth hides                                        a right answer
@@ -200,7 +202,8 @@ def _relperm_endpoint(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candi
                   f"{shift:+.3f}): an end point, not the curve's shape",
                   details={"generated": "relperm_endpoint", "expect_wells": [],
                            "expect_ids": ["relative_permeability:water",
-                                          "relative_permeability:water:scale"]})
+                                          "relative_permeability:water:scale",
+                                          "relative_permeability:water:endpoint"]})
     return c, shift
 
 

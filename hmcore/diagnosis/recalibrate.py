@@ -34,7 +34,8 @@ class Coordinates:
     def __init__(self, parameters: list[Parameter] | tuple[Parameter, ...]):
         self.parameters = tuple(parameters)
         self.names = [p.name for p in self.parameters]
-        self.log = np.array([p.kind in LOG_KINDS for p in self.parameters])
+        self.log = np.array([p.kind in LOG_KINDS and p.mode != "endpoint"  # a shift: linear
+                             for p in self.parameters], dtype=bool)
         lo = np.array([p.low for p in self.parameters], float)
         hi = np.array([p.high for p in self.parameters], float)
         self._lo, self._hi = lo.copy(), hi.copy()
