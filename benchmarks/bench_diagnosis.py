@@ -108,6 +108,7 @@ def judged(doc: dict, hidden_path: Path) -> dict:
                 "visible_in_fitted_history": signal.get("visible_in_fitted_history"),
                 "truth_E_heldout": signal.get("truth_E_heldout"),
                 "lead": doc.get("lead"),
+                "first_cause": doc["causes"][0]["id"] if doc.get("causes") else None,
                 "hidden_values": {e.candidate.id: e.value for e in effects}})
     return out
 
@@ -226,7 +227,8 @@ def table(rows: list[dict]) -> str:
                           f"{_fmt(a['heldout_after'], '.4f')}"
                           for a in r.get("accepted_gains") or []) or "-"
         first = (r.get("ranking") or ["-"])[0]
-        answer = (r.get("verdict") or r.get("error") or "-").split(":")[0][:40]
+        answer = (f"first {r['first_cause']}" if r.get("first_cause") and not r.get("error")
+                  else (r.get("verdict") or r.get("error") or "-").split(":")[0][:40])
         win = r.get("named_on")
         win = (f"named on the window to day {win['fitted_to_day']:g}" if isinstance(win, dict)
                else "first window")

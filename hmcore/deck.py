@@ -273,6 +273,8 @@ def shift_endpoint(sat, kr, shift: float):
     import numpy as np
 
     sat, kr = np.asarray(sat, float), np.asarray(kr, float)
+    if shift == 0:
+        return kr.copy()  # a curve with no zero row would otherwise lose its first value
     rising = kr[-1] >= kr[0]
     s, k = (sat, kr) if rising else (sat[::-1], kr[::-1])
     sign = 1.0 if rising else -1.0

@@ -305,6 +305,23 @@ def test_extension_library_for_the_synthetic_deck(tmp_path):
     assert aq[4].parameter.match is None  # one aquifer
     tables = {c.parameter.keywords[0] for c in cands if c.kind == "relative_permeability"}
     assert tables == {"SWOF", "SGOF"}
+    # a critical saturation moves down only as far as the table's first row: the synthetic
+    # SWOF starts at its critical saturation (no room), its SGOF 0.05 above its first row;
+    # that end is a limit, not an open end
+    from hmcore.diagnosis.extensions import base_values, critical_room, open_end
+
+    by = {c.id: c for c in cands}
+    water, gas = (by[f"relative_permeability:{ph}:endpoint"] for ph in ("water", "gas"))
+    assert critical_room(info, "SWOF") == 0.0 and water.parameter.low == 0.0
+    assert gas.parameter.low == pytest.approx(-critical_room(info, "SGOF")) == -0.05
+    assert water.parameter.high == gas.parameter.high == 0.2
+    assert open_end(gas, -0.05, 0.05) is None and open_end(gas, 0.2, 0.05) == "high"
+    own = ParameterSpace(parameters=(*space.parameters, water.parameter))
+    assert base_values(info, own)[water.name] == 0.0  # as given: no shift, not a factor of 1
+    for seed in range(8):  # a drawn shift is a saturation change where the table has room
+        e = draw_effect("relative_permeability", seed, info, space, {"skin": 3.0},
+                        choices=[water.id, gas.id])
+        assert 0.05 <= abs(e.value) <= 0.10 and e.value >= e.parameter.low
     # hidden effects are drawn deterministically per seed, inside the bounds
     for kind in ("well_skin", "fault_transmissibility", "aquifer_strength"):
         e1 = draw_effect(kind, 7, info, space, {"skin": 3.0})
@@ -1141,6 +1158,7 @@ def _partial_doc(before: float, after: float, n: int = 260, fit_share: float = 0
     (400.0, 340.0, 260, 0.40, True),    # 43 % and 40 %, still beyond noise
     (507.0, 482.0, 260, 0.65, False),   # most of the fitted misfit: a partial shape's name
     (507.0, 482.0, 0, 0.06, False),     # nothing measured held back
+    (320.0, 335.0, 260, 0.06, False),   # within noise before it (line 328): nothing to explain
 ])
 def test_a_cause_explaining_a_minority_of_the_misfit_leads_with_unexplained(
         before, after, n, fit_share, leads):
@@ -1163,6 +1181,20 @@ def test_a_cause_explaining_a_minority_of_the_misfit_leads_with_unexplained(
         assert lead_unexplained(out, s) is out  # idempotent
     else:
         assert out is doc and "lead" not in out
+    if leads:  # the judge of one library effect reads a partial answer as judge_effects does
+        from hmcore.diagnosis.hidden import HiddenEffect, judge
+        from hmcore.diagnosis.extensions import Candidate
+
+        skin = Candidate("well_skin:PROD3", "well_skin",
+                         Parameter(name="skin_PROD3", kind="skin", wells=("PROD3",), low=-5,
+                                   high=30), ("PROD3",), (), "PROD3's skin", 0.0, 6.0)
+        out = {**out, "selected": out["accepted"][0],
+               "gain": {**out["gain"], "fit_before": 0.01, "fit_after": 0.009,
+                        "heldout_before": 0.02, "heldout_after": 0.018}}
+        for c in out["causes"]:
+            c.setdefault("chi2", None)
+        assert judge(out, HiddenEffect(skin, 12.0))["ranked_first"]
+        assert not judge({**out, "lead": None}, HiddenEffect(skin, 12.0))["ranked_first"]
     wide = DiagnosisSettings(partial_share=0.05)
     assert lead_unexplained(_partial_doc(507.0, 482.0), wide)["causes"][0]["id"] == \
         "well_skin:PROD3"

@@ -568,6 +568,8 @@ def test_relperm_endpoint_shift_moves_the_critical_saturation():
     krow = np.array([1.0, 0.8, 0.6, 0.4, 0.2, 0.1, 0.02, 0, 0])
     more = shift_endpoint(sw, krow, 0.1)       # SOWCR 0.2 -> 0.3: krow is 0 from Sw 0.7
     assert more[sw >= 0.7].max() == 0 and more[0] == 1.0 and np.all(np.diff(more) <= 0)
+    connate = np.array([0.02, 0.03, 0.05, 0.1, 0.2, 0.3, 0.4, 0.6, 1.0])  # no zero row
+    assert np.array_equal(shift_endpoint(sw, connate, 0.0), connate)  # no shift: unchanged
 
 
 def test_relperm_endpoint_parameter_writes_a_table_opm_reads(tmp_path):

@@ -267,11 +267,12 @@ def lead_unexplained(doc: dict, s: DiagnosisSettings) -> dict:
     accepted = doc.get("accepted") or []
     g = doc.get("gain") or {}
     n = g.get("n_heldout_measured") or 0
-    if not at or not accepted or not n or g.get("ssr_heldout_after") is None:
+    if not at or not accepted or not n or g.get("ssr_heldout_after") is None or \
+            g.get("ssr_heldout_before") is None:
         return doc
     before, after = float(g["ssr_heldout_before"]), float(g["ssr_heldout_after"])
     line = heldout_noise_line(n, s)
-    if after <= line or before <= n:
+    if after <= line or before <= line:  # within noise after, or nothing to explain before
         return doc
     share = (before - after) / (before - n)
     n_fit = g.get("n_fit_measured") or 0

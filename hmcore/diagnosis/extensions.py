@@ -120,6 +120,8 @@ def open_end(c: Candidate, value: float, near: float) -> str | None:
         return None
     (u,) = Coordinates([c.parameter]).to_u({c.name: value})
     end = "high" if u >= 1.0 - near else "low" if u <= -1.0 + near else None
+    if end == "low" and c.details.get("low_is_limit"):  # e.g. a table's first row
+        return None
     return None if end is None or end in LIMIT_ENDS.get(c.kind, ()) else end
 
 
@@ -163,14 +165,17 @@ def deck_skins(info: DeckInfo) -> dict[str, float]:
 
 
 def base_values(info: DeckInfo, space: ParameterSpace) -> dict[str, float]:
-    """The base model as given, in ``space``: multipliers 1, each skin parameter the mean deck
-    skin (COMPDAT item 11) of its wells (default: the producers), clipped to its bounds."""
+    """The base model as given, in ``space``: multipliers 1, shifts 0, each skin parameter the
+    mean deck skin (COMPDAT item 11) of its wells (default: the producers), clipped to its
+    bounds."""
     skins = deck_skins(info)
     out = {}
     for p in space.parameters:
         if p.kind == "skin":
             wells = p.wells or tuple(info.producers)
             v = float(np.mean([skins.get(w, 0.0) for w in wells])) if wells else 0.0
+        elif p.kind == "relperm" and p.mode == "endpoint":
+            v = 0.0  # a shift: none
         else:
             v = 1.0
         out[p.name] = float(np.clip(v, p.low, p.high))
@@ -417,8 +422,10 @@ def relative_permeability(info: DeckInfo, space: ParameterSpace,
                              "times a factor, its shape kept)",
                              1.0, RELPERM_SCALE_PROBE, {"phase": phase, "table": table}))
         crit = "SWCR" if phase == "water" else "SGCR"
+        room = critical_room(info, table)  # a shift below the table's first row does nothing
+        low = max(RELPERM_ENDPOINT_BOUNDS[0], -room)
         p = Parameter(name=f"{short}_{crit.lower()}_shift", kind="relperm", keywords=(table,),
-                      item=2, mode="endpoint", low=RELPERM_ENDPOINT_BOUNDS[0],
+                      item=2, mode="endpoint", low=0.0 if low > -1e-3 else low,
                       high=RELPERM_ENDPOINT_BOUNDS[1],
                       description=f"shift of the critical saturation of the {short} curve of "
                                   f"{table} ({crit})")
@@ -426,8 +433,33 @@ def relative_permeability(info: DeckInfo, space: ParameterSpace,
                              p, (), (), f"the {phase} phase starts to flow at another saturation "
                              f"than the model says (the critical saturation of {short} in "
                              f"{table}, {crit}, moved; the curve's end points kept)",
-                             0.0, RELPERM_ENDPOINT_PROBE, {"phase": phase, "table": table}))
+                             0.0, RELPERM_ENDPOINT_PROBE,
+                             {"phase": phase, "table": table,
+                              "low_is_limit": low > RELPERM_ENDPOINT_BOUNDS[0]}))
     return out
+
+
+def critical_room(info: DeckInfo, table: str) -> float:
+    """How far (saturation) the critical saturation of column 2 of ``table`` (SWOF / SWFN /
+    SGOF / SGFN) can move down before it reaches the table's first row: the least over the
+    deck's tables of that keyword (one per saturation region). 0 when a table starts at its
+    critical saturation (a shift down then changes nothing); 0.5 when the tables cannot be
+    read (defaulted items: the deck writer refuses to shift them anyway)."""
+    from hmcore.tables import width
+
+    rooms = []
+    for rec in deck_blocks(info).get(table, []):
+        try:
+            t = np.array([float(x) for x in rec]).reshape(-1, width(table))
+        except ValueError:
+            return 0.5
+        sat, kr = t[:, 0], t[:, 1]
+        if kr[-1] < kr[0]:
+            sat, kr = sat[::-1], kr[::-1]
+        zero = np.flatnonzero(kr <= 0)
+        crit = sat[zero[-1]] if zero.size and zero[-1] < kr.size - 1 else sat[0]
+        rooms.append(abs(float(crit - sat[0])))
+    return min(rooms) if rooms else 0.5
 
 
 def productivity_change(info: DeckInfo, space: ParameterSpace,

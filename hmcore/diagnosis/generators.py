@@ -237,15 +237,9 @@ def _rows_below_critical(info: DeckInfo, table: str) -> bool:
     """Whether the first ``table`` (SWOF / SWFN) has rows below the critical water saturation,
     so that a negative end-point shift changes it (the synthetic deck's starts there: without
     such rows a negative shift is no effect at all)."""
-    from hmcore.deck import shift_endpoint
-    from hmcore.tables import width
+    from hmcore.diagnosis.extensions import critical_room
 
-    records = deck_blocks(info).get(table, [])
-    try:
-        t = np.array([float(x) for x in records[0]]).reshape(-1, width(table))
-    except (IndexError, ValueError):  # defaulted items: the deck writer refuses them anyway
-        return True
-    return not np.allclose(shift_endpoint(t[:, 0], t[:, 1], -0.05), t[:, 1])
+    return critical_room(info, table) > 1e-3
 
 
 def _contact(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:

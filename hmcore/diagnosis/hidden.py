@@ -49,9 +49,12 @@ STRENGTH = {
 drawn as a baffle (kv cut 100-1000 times): raising kv changes nothing once it is not the
 bottleneck. An aquifer productivity index is drawn weaker (see :data:`STRENGTH_OVERRIDES`)."""
 
-STRENGTH_OVERRIDES = {"aquifer_strength:AQUFETP:6": ((0.005, 0.03), (0.005, 0.03), 1.0)}
+STRENGTH_OVERRIDES = {"aquifer_strength:AQUFETP:6": ((0.005, 0.03), (0.005, 0.03), 1.0),
+                      "relative_permeability:water:endpoint": ((-0.10, -0.05), (0.05, 0.10), 0.5),
+                      "relative_permeability:gas:endpoint": ((-0.10, -0.05), (0.05, 0.10), 0.5)}
 """Per-candidate ranges (id prefix): a Fetkovich aquifer's productivity index matters only
-when it, not the grid, limits the influx, i.e. when it is much weaker than the deck's."""
+when it, not the grid, limits the influx, i.e. when it is much weaker than the deck's; a
+critical-saturation shift is a saturation change (uniform, added), not a factor."""
 
 
 @dataclass(frozen=True)
@@ -174,6 +177,9 @@ def draw_effect(kind: str, seed: int, info: DeckInfo, space: ParameterSpace,
     lo, hi = (dlo, dhi) if rng.random() < p_down else (ulo, uhi)
     if kind == "well_skin":
         value = c.neutral + float(rng.uniform(lo, hi))
+    elif c.parameter.mode == "endpoint":  # a shift; none below a table's first row
+        value = c.neutral + float(rng.uniform(lo, hi))
+        value = -value if value < c.parameter.low else value
     else:
         value = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
     value = float(np.clip(value, c.parameter.low, c.parameter.high))
@@ -538,6 +544,8 @@ def judge(doc: dict, effect: HiddenEffect | None, signal: dict | None = None) ->
     three mean "reported none". ``found`` = all three.
     """
     first = doc["causes"][0]
+    if doc.get("lead") and first["kind"] == "unexplained" and len(doc["causes"]) > 1:
+        first = doc["causes"][1]  # a partial answer: as judge_effects, by what was accepted
     top = [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:4] if c["chi2"] is not None]
     g = doc["gain"]
     if effect is None:

@@ -907,9 +907,14 @@ class Diagnosis:
 
 
 def _plot_wells(doc: dict, case: Case) -> list[str]:
+    """The wells the answer names: the first cause's and, when it is `unexplained` (or a
+    partial answer led by it), the accepted causes' too; every well when they name none."""
+    wells: list[str] = []
     for c in doc["causes"]:
         if c["kind"] != "none":
-            if c["wells"]:
-                return list(c["wells"])
+            wells += list(c["wells"])
             break
-    return sorted(case.info.wells, key=natural_key)
+    for a in doc.get("accepted") or []:
+        wells += list(a.get("wells") or [])
+    return (sorted(set(wells), key=natural_key) if wells
+            else sorted(case.info.wells, key=natural_key))
