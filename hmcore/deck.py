@@ -263,6 +263,17 @@ def _rewrite_tables(block: Block, edits: list[TableTransform], file: Path) -> Bl
     return Block(block.keyword, new_lines)
 
 
+def critical_saturation(sat, kr) -> float:
+    """Where ``kr`` on the saturation nodes ``sat`` leaves 0: the last zero before it rises (or,
+    for a falling curve, the first zero after it falls); its first node when it has no zero."""
+    import numpy as np
+
+    sat, kr = np.asarray(sat, float), np.asarray(kr, float)
+    s, k = (sat, kr) if kr[-1] >= kr[0] else (sat[::-1], kr[::-1])
+    zero = np.flatnonzero(k <= 0)
+    return float(s[zero[-1]] if zero.size and zero[-1] < k.size - 1 else s[0])
+
+
 def shift_endpoint(sat, kr, shift: float):
     """``kr`` on the saturation nodes ``sat`` with its critical saturation moved by ``shift``.
 
@@ -278,8 +289,7 @@ def shift_endpoint(sat, kr, shift: float):
     rising = kr[-1] >= kr[0]
     s, k = (sat, kr) if rising else (sat[::-1], kr[::-1])
     sign = 1.0 if rising else -1.0
-    zero = np.flatnonzero(k <= 0)
-    crit = s[zero[-1]] if zero.size and zero[-1] < k.size - 1 else s[0]
+    crit = critical_saturation(sat, kr)
     far = s[-1]
     span = far - crit
     if abs(span) < 1e-12:

@@ -445,6 +445,7 @@ def critical_room(info: DeckInfo, table: str) -> float:
     deck's tables of that keyword (one per saturation region). 0 when a table starts at its
     critical saturation (a shift down then changes nothing); 0.5 when the tables cannot be
     read (defaulted items: the deck writer refuses to shift them anyway)."""
+    from hmcore.deck import critical_saturation
     from hmcore.tables import width
 
     rooms = []
@@ -454,11 +455,8 @@ def critical_room(info: DeckInfo, table: str) -> float:
         except ValueError:
             return 0.5
         sat, kr = t[:, 0], t[:, 1]
-        if kr[-1] < kr[0]:
-            sat, kr = sat[::-1], kr[::-1]
-        zero = np.flatnonzero(kr <= 0)
-        crit = sat[zero[-1]] if zero.size and zero[-1] < kr.size - 1 else sat[0]
-        rooms.append(abs(float(crit - sat[0])))
+        first = sat[0] if kr[-1] >= kr[0] else sat[-1]
+        rooms.append(abs(critical_saturation(sat, kr) - float(first)))
     return min(rooms) if rooms else 0.5
 
 
