@@ -30,7 +30,9 @@ effect, report and diagnosis JSON (gzipped) copied to ``DIR/<case>-<kind>-<seed>
 judge, not of the diagnosis; the answer's lead is set again first,
 :func:`hmcore.diagnosis.decision.lead_unexplained`, which reorders the stored causes and runs
 nothing - a row it changed says ``lead``). ``--table FILE...``: the markdown
-table of such files (docs/diagnosis.md). Nothing is asserted.
+table of such files; with ``--into DOC`` it replaces the text between the lines
+``<!-- sweep table -->`` and ``<!-- end sweep table -->`` of DOC (docs/diagnosis.md) instead of
+printing it. Nothing is asserted.
 """
 
 from __future__ import annotations
@@ -251,6 +253,26 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+TABLE_START, TABLE_END = "<!-- sweep table -->", "<!-- end sweep table -->"
+
+
+def into_doc(doc: Path, text: str) -> None:
+    """Put ``text`` between the lines TABLE_START and TABLE_END of ``doc`` (written to a
+    temporary file beside it, then moved into place); the rest of the file is kept as it is."""
+    lines = doc.read_text(encoding="utf-8").splitlines(keepends=True)
+    starts = [i for i, line in enumerate(lines) if line.strip() == TABLE_START]
+    ends = [i for i, line in enumerate(lines) if line.strip() == TABLE_END]
+    if len(starts) != 1 or len(ends) != 1 or ends[0] < starts[0]:
+        raise SystemExit(
+            f"{doc}: the table goes between one line {TABLE_START} and one later line "
+            f"{TABLE_END}; found {len(starts)} and {len(ends)} (fix: put the two lines where "
+            f"the table belongs)")
+    new = lines[:starts[0] + 1] + [text if text.endswith("\n") else text + "\n"] + lines[ends[0]:]
+    tmp = doc.with_name(f".{doc.name}.tmp")
+    tmp.write_text("".join(new), encoding="utf-8")
+    tmp.replace(doc)
+
+
 def main() -> None:
     from hmcore.diagnosis.extensions import KINDS
     from hmcore.diagnosis.generators import GENERATORS
@@ -268,6 +290,8 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--jsonl", type=Path, help="append one line per case; skip those it holds")
     ap.add_argument("--table", type=Path, nargs="+", help="print the table of these JSONL files")
+    ap.add_argument("--into", type=Path, help="with --table: write it into this markdown file "
+                    f"between the lines {TABLE_START} and {TABLE_END}")
     ap.add_argument("--keep", type=Path, help="copy each case's hidden effect, report and "
                                               "diagnosis JSON (gzipped) into this folder")
     ap.add_argument("--rejudge", action="store_true", help="judge the rows of --jsonl again "
@@ -277,8 +301,15 @@ def main() -> None:
     ap.add_argument("--record-end", type=float, default=2936.0,
                     help="punq: last day of the measured record (0: the schedule's end)")
     args = ap.parse_args()
+    if args.into and not args.table:
+        ap.error("--into needs --table")
     if args.table:
-        print(table([r for f in args.table for r in _read_jsonl(f)]), end="")
+        text = table([r for f in args.table for r in _read_jsonl(f)])
+        if args.into:
+            into_doc(args.into, text)
+            print(f"table of {len(args.table)} file(s) written into {args.into}")
+        else:
+            print(text, end="")
         return
     if args.rejudge:
         if not (args.jsonl and args.keep):

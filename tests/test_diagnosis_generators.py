@@ -263,6 +263,38 @@ def test_a_sweep_row_is_judged_again_from_its_kept_evidence(synthetic, tmp_path)
     assert "| synthetic | offcentre_region | 2 | 1/2 | 1/1 | 2/2 |" in text
 
 
+def test_the_sweep_table_goes_between_its_markers_and_nowhere_else(tmp_path):
+    """`--table ... --into DOC` replaces only the text between the two marker lines, and a
+    document without them is refused with the file and the fix, not written."""
+    bench = _bench()
+    doc = tmp_path / "diagnosis.md"
+    doc.write_text(f"# Before\n{bench.TABLE_START}\nold table\n{bench.TABLE_END}\nafter\n")
+    bench.into_doc(doc, "| new |")
+    assert doc.read_text() == (f"# Before\n{bench.TABLE_START}\n| new |\n{bench.TABLE_END}"
+                               "\nafter\n")
+    bare = tmp_path / "bare.md"
+    bare.write_text("no markers\n")
+    with pytest.raises(SystemExit, match=r"bare\.md: the table goes between .* found 0 and 0"):
+        bench.into_doc(bare, "| new |")
+    assert bare.read_text() == "no markers\n"
+
+
+def test_the_docs_hold_the_table_of_the_committed_sweep_rows():
+    """docs/diagnosis.md's sweep table is the table of the JSONL rows in the repository: rows
+    committed without their table (or a table edited by hand) fail here. Regenerate it with
+    `python benchmarks/bench_diagnosis.py --table benchmarks/results/diagnosis-sweep/synthetic.jsonl
+    benchmarks/results/diagnosis-sweep/punqs3.jsonl --into docs/diagnosis.md`."""
+    bench = _bench()
+    root = Path(__file__).resolve().parents[1]
+    files = [root / "benchmarks" / "results" / "diagnosis-sweep" / f
+             for f in ("synthetic.jsonl", "punqs3.jsonl")]
+    rows = [r for f in files if f.is_file() for r in bench._read_jsonl(f)]
+    assert rows, "no sweep rows in benchmarks/results/diagnosis-sweep"
+    doc = (root / "docs" / "diagnosis.md").read_text(encoding="utf-8")
+    inside = doc.split(bench.TABLE_START + "\n", 1)[1].split(bench.TABLE_END, 1)[0]
+    assert inside == bench.table(rows)
+
+
 # ============================================================================= slow sweep
 def _bench():
     """benchmarks/bench_diagnosis.py, the documented sweep (one case: :func:`one`)."""
