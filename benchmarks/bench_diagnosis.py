@@ -9,7 +9,8 @@
         --jsonl benchmarks/results/diagnosis-sweep/synthetic.jsonl   # issue 18's sweep
     python benchmarks/bench_diagnosis.py --case punq --kinds generators --seeds 31 32 33 \
         --record-end 0 --history-end 0 --jsonl benchmarks/results/diagnosis-sweep/punqs3.jsonl
-    python benchmarks/bench_diagnosis.py --table benchmarks/results/diagnosis-sweep/*.jsonl
+    python benchmarks/bench_diagnosis.py --table benchmarks/results/diagnosis-sweep/*.jsonl \
+        [--into docs/diagnosis.md]
 
 For each (kind, seed) a case is written whose truth hides one extension drawn by the seed
 (:mod:`hmcore.diagnosis.hidden`): the synthetic case (seeded fields and noise, the known
