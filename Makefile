@@ -32,4 +32,4 @@ run: install
 	$(BIN)/hmflow run
 
 test: install-test
-	HMFLOW_CACHE_DIR=$$(mktemp -d) PREFECT_HOME=$$(mktemp -d) $(BIN)/python -m pytest -q -m 'not slow'
+	HMFLOW_CACHE_DIR=$$(mktemp -d) PREFECT_HOME=$$(mktemp -d) $(BIN)/python -m pytest -q -m 'not slow' --durations=30
