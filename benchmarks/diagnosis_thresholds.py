@@ -47,6 +47,7 @@ class Tally:
     noise_confirmed: list[str] = field(default_factory=list)
     stand_ins: int = 0
     ties: list[tuple[str, str]] = field(default_factory=list)
+    passed_over: list[tuple[str, str]] = field(default_factory=list)
     screened: list[tuple[str, bool, bool]] = field(default_factory=list)
     weak: list[str] = field(default_factory=list)
 
@@ -102,7 +103,10 @@ def tally(cases: list[Path]) -> Tally:
         st = doc.get("statistic") or {}
         runner = st.get("vs_runner_up")
         if runner and not runner["apart"]:
-            t.ties.append((label, "right" if right(st["cause"]) else "wrong" if any(
+            # within the band either way: a tie the held-back history ordered; further below:
+            # the runner-up fitted better, but the held-back rule did not confirm it
+            into = t.ties if runner["lr"] >= -s["tie_band"] else t.passed_over
+            into.append((label, "right" if right(st["cause"]) else "wrong" if any(
                 right(c) for c in recal) else "no right candidate"))
         ranking = doc["ranking"]
         by_id = {c["id"]: c for c in ranking["candidates"]}
@@ -133,8 +137,13 @@ def table(t: Tally) -> str:
         ("tie band (`tie_band` 10)",
          f"cases with the top two within it: {len(t.ties)}; the held-back history put a right "
          f"one first in {sum(v == 'right' for _, v in t.ties)}, a wrong one before a right one "
-         f"in {sum(v == 'wrong' for _, v in t.ties)}",
-         "; ".join(f"{c} ({v})" for c, v in t.ties) or "-"),
+         f"in {sum(v == 'wrong' for _, v in t.ties)}. Cases whose runner-up fitted better by "
+         f"more than the band but was not confirmed by the held-back history: "
+         f"{len(t.passed_over)}; the cause chosen instead right in "
+         f"{sum(v == 'right' for _, v in t.passed_over)}, wrong where a right one was recalibrated "
+         f"in {sum(v == 'wrong' for _, v in t.passed_over)}",
+         "; ".join(f"{c} ({v})" for c, v in t.ties) + " / passed over: "
+         + ("; ".join(f"{c} ({v})" for c, v in t.passed_over) or "-")),
         ("screen (`screen_threshold` 8)",
          f"recalibrated from under the line: {n_screen}, right {sum(r for _, r, _ in t.screened)},"
          f" accepted {sum(a for _, _, a in t.screened)}",
