@@ -15,7 +15,9 @@ how each line treated it:
   candidates over the fit line that it vetoed, noise fits it confirmed, and wrong candidates
   it confirmed where an effect acts (stand-ins that predict part of it);
 - the tie band (``tie_band``): cases whose top two recalibrated fits lie within it (the
-  held-back history ordered them), and whether the top one was right;
+  held-back history ordered them), and whether the top one was right; apart from them, the
+  cases whose runner-up fitted better by more than the band but was passed over because the
+  held-back rule did not confirm it;
 - the screen (``screen_threshold``): candidates recalibrated only because they scored between
   it and the line, and how many of those were right or accepted;
 - the weak lead (``weak_lead``): cases whose leading score test was under it.
