@@ -13,15 +13,15 @@
         [--into docs/diagnosis.md]
 
 For each (kind, seed) a case is written whose truth hides one extension drawn by the seed
-(:mod:`hmcore.diagnosis.hidden`): the synthetic case (seeded fields and noise, the known
+(:mod:`hmcore.scenarios.hidden`): the synthetic case (seeded fields and noise, the known
 five-parameter truth) or PUNQ-S3 (truth run of PUNQS3.DATA with the effect applied, PUNQ-style
 AR(1) noise, no sigma in the CSV, record to day 2936, fitted to day 2200; ``--record-end 0
 --history-end 0``: `hmflow hide`'s defaults, the whole schedule, 75 % of it fitted). The diagnosis runs on
 the base model, ``workers`` simulations at a time, and is judged by
-:func:`hmcore.diagnosis.hidden.judge`: right kind (and well / layer / plane) ranked first,
+:func:`hmcore.scenarios.judge.judge`: right kind (and well / layer / plane) ranked first,
 selected, held-back misfit improved. Controls hide nothing and must report ``none``.
 ``--kinds generators``: the effects beyond the library's geometry
-(:mod:`hmcore.diagnosis.generators`), judged by :func:`hmcore.diagnosis.hidden.judge_effects`
+(:mod:`hmcore.scenarios.generators`), judged by :func:`hmcore.scenarios.judge.judge_effects`
 (each effect named by an accepted cause, its family and wells; an effect of no family:
 ``unexplained``, or ``none`` when the fitted history hardly shows it).
 ``--jsonl FILE``: one line per case, appended as each ends; a rerun skips the cases the file
@@ -55,9 +55,9 @@ PUNQ_TRUTH = {"poro_mult": 1.0, "permx_mult": 1.0, "permy_mult": 1.0, "permz_mul
 
 def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
         history_end: float = 2200.0, record_end: float = 2936.0) -> dict:
-    from hmcore.case import load_case
+    from hmcore.cases import load_case
     from hmcore.diagnosis import diagnose, local_evaluator
-    from hmcore.diagnosis.hidden import write_hidden_deck_case, write_hidden_synthetic_case
+    from hmcore.scenarios.hidden import write_hidden_deck_case, write_hidden_synthetic_case
 
     tmp = root / f"{case}-{kind or 'control'}-{seed}"
     t0 = time.perf_counter()
@@ -96,9 +96,10 @@ def one(case: str, kind: str | None, seed: int, root: Path, workers: int,
 
 def judged(doc: dict, hidden_path: Path) -> dict:
     """The judgement of a diagnosis ``doc`` against the hidden effect(s) of ``hidden_path``
-    (:func:`hmcore.diagnosis.hidden.judge_effects` for generated or several effects,
-    :func:`~hmcore.diagnosis.hidden.judge` for one library effect), with the effect's signal."""
-    from hmcore.diagnosis.hidden import judge, judge_effects, load_hidden_effects, visible
+    (:func:`hmcore.scenarios.judge.judge_effects` for generated or several effects,
+    :func:`~hmcore.scenarios.judge.judge` for one library effect), with the effect's signal."""
+    from hmcore.scenarios.judge import judge, judge_effects, visible
+    from hmcore.scenarios.effects import load_hidden_effects
 
     signal = json.loads(hidden_path.read_text()).get("signal") or {}
     effects = load_hidden_effects(hidden_path)
@@ -197,7 +198,7 @@ def _fmt(x, spec: str = ".3g") -> str:
 def _found(r: dict) -> str:
     """yes / no; for an effect the data hardly show (``visible`` false: its signal, once the
     globals absorb what they can, under the line on the fitted history and under the held-back
-    noise line on the held-back one: :func:`hmcore.diagnosis.hidden.visible`), ``none`` is
+    noise line on the held-back one: :func:`hmcore.scenarios.judge.visible`), ``none`` is
     right too. A wrong
     answer whose model predicts the held-back history about as well as the truth (E within
     10 % of the truth's) is marked so: the data do not tell the two apart."""
@@ -216,7 +217,7 @@ def _found(r: dict) -> str:
 def table(rows: list[dict]) -> str:
     """The markdown table of sweep rows: one line per case, then one per (case, kind); in the
     order case, kind (controls, then the generators in their order, then library kinds), seed."""
-    from hmcore.diagnosis.generators import GENERATORS
+    from hmcore.scenarios.generators import GENERATORS
 
     order = {k: i for i, k in enumerate(("control", *GENERATORS))}
     rows = sorted(rows, key=lambda r: (r["case"] != "synthetic", r["case"],
@@ -276,7 +277,7 @@ def into_doc(doc: Path, text: str) -> None:
 
 def main() -> None:
     from hmcore.diagnosis.extensions import KINDS
-    from hmcore.diagnosis.generators import GENERATORS
+    from hmcore.scenarios.generators import GENERATORS
 
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -5,14 +5,14 @@
 Without ``--case`` the PUNQ-S3 acceptance case (../shared/punqs3, full measured history,
 history_end_days = 2936) is written to a temporary directory and used.
 
-For every run, ``hmcore.evaluation.evaluate`` is timed as it reports itself:
+For every run, ``hmcore.scoring.evaluation.evaluate`` is timed as it reports itself:
 ``overhead = Evaluation.wall_time_s - Evaluation.sim_time_s``, i.e. everything that is not the
 simulator subprocess (physics check, deck preparation, reading the summary twice - end time
 and responses - alignment, misfit and metrics). ``sim_time_s`` is the wall time of the
 simulator subprocess (for the default backend: a fresh Python that imports opm and runs Flow).
 The three main parts are also timed on their own with ``time.perf_counter`` around
-``hmcore.deck.prepare_run_deck`` (into a scratch dir), ``hmcore.responses.read_responses``
-and ``hmcore.evaluation.score_responses`` on the run's summary. The overhead is reported as a
+``hmcore.model.run_deck.prepare_run_deck`` (into a scratch dir), ``hmcore.simulation.responses.read_responses``
+and ``hmcore.scoring.evaluation.score_responses`` on the run's summary. The overhead is reported as a
 percentage of the simulator time; the target is < 3 %. Runs are sequential (never more than
 one simulation at a time), so the simulator time is not inflated by this script.
 """
@@ -76,10 +76,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--keep", action="store_true", help="keep the temp dir with the runs")
     args = ap.parse_args(argv)
 
-    from hmcore.case import load_case
-    from hmcore.deck import prepare_run_deck
-    from hmcore.evaluation import evaluate, score_responses, simulator_for
-    from hmcore.responses import read_responses
+    from hmcore.cases import load_case
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.scoring.evaluation import evaluate, score_responses, simulator_for
+    from hmcore.simulation.responses import read_responses
 
     work = args.workdir or Path(tempfile.mkdtemp(prefix="hmflow-bench-eval-"))
     work.mkdir(parents=True, exist_ok=True)

@@ -25,8 +25,8 @@ sys.path.insert(0, str(REPO))
 
 
 def main() -> None:
-    from hmcore.case import load_case
-    from hmcore.evaluation import evaluate, simulator_for
+    from hmcore.cases import load_case
+    from hmcore.scoring.evaluation import evaluate, simulator_for
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--case", type=Path, required=True)

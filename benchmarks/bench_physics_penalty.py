@@ -4,7 +4,7 @@
 
 Without ``--case`` the PUNQ-S3 acceptance case (../shared/punqs3, the paper's five-parameter
 box) is used. Draws ``--n`` actions uniformly in [-1, 1]^d (``numpy.random.default_rng(seed)``),
-maps them to the box and runs :func:`hmcore.physics.check_physics` on each: the checks made
+maps them to the box and runs :func:`hmcore.scoring.physics.check_physics` on each: the checks made
 before any simulator time (kv/kh, porosity-permeability trend, pore volume, extremes). Prints
 the share of proposals each check touches, the share touched by any, and the median penalty of
 the penalised ones. The checks on simulated responses (minimum pressure, water cut range) need
@@ -28,8 +28,8 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 def main() -> None:
     from bench_evaluation import write_punq_case
-    from hmcore.case import load_case
-    from hmcore.physics import check_physics
+    from hmcore.cases import load_case
+    from hmcore.scoring.physics import check_physics
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--case", default=None)

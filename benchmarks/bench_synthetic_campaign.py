@@ -25,10 +25,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def noise_band(case, truth: pd.DataFrame, k: int, seed: int) -> np.ndarray:
-    from hmcore.case import Case
-    from hmcore.evaluation import score_responses
-    from hmcore.observed import derive_phase_rates
-    from hmcore.synthetic import make_observed
+    from hmcore.model.case import Case
+    from hmcore.scoring.evaluation import score_responses
+    from hmcore.model.observed import derive_phase_rates
+    from hmcore.scenarios.synthetic import make_observed
 
     out = []
     for rng in np.random.default_rng(seed).spawn(k):
@@ -53,9 +53,9 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
 
-    from hmcore.case import load_case
-    from hmcore.evaluation import score_responses
-    from hmcore.synthetic import ensure_synthetic_case
+    from hmcore.cases import load_case
+    from hmcore.scoring.evaluation import score_responses
+    from hmcore.scenarios.synthetic import ensure_synthetic_case
     from storage import ArtifactStore
 
     if args.run:

@@ -5,7 +5,7 @@
 Reads each kept case (``<case>-<kind>-<seed>/``: ``hidden_effect.json`` and the gzipped
 ``diagnosis.json`` that ``bench_diagnosis.py --keep`` stores) and, for the window and round 1
 that gave the answer, asks of every recalibrated candidate whether it names a hidden effect
-(:func:`hmcore.diagnosis.hidden.names`; an effect of no family is named by no candidate) and
+(:func:`hmcore.scenarios.hidden.names`; an effect of no family is named by no candidate) and
 how each line treated it:
 
 - the fit line (``fit_threshold``, from ``false_alarm``): candidates over it where there is
@@ -56,7 +56,7 @@ class Tally:
 
 def load(case_dir: Path):
     """(hidden effects, diagnosis document) of a kept case, or None when it lacks either."""
-    from hmcore.diagnosis.hidden import load_hidden_effects
+    from hmcore.scenarios.effects import load_hidden_effects
 
     hidden, doc = case_dir / "hidden_effect.json", case_dir / "diagnosis.json.gz"
     if not (hidden.is_file() and doc.is_file()):
@@ -65,7 +65,7 @@ def load(case_dir: Path):
 
 
 def tally(cases: list[Path]) -> Tally:
-    from hmcore.diagnosis.hidden import described, names, visible
+    from hmcore.scenarios.judge import described, names, visible
 
     t = Tally()
     for case_dir in cases:

@@ -26,10 +26,10 @@ sys.path.insert(0, str(REPO))
 
 
 def draw_valid_truth(seed: int, deck: Path) -> dict[str, float]:
-    from hmcore.case import PhysicsSettings
-    from hmcore.deck_info import DeckInfo
-    from hmcore.parameters import ParameterSpace
-    from hmcore.physics import check_physics
+    from hmcore.model.case import PhysicsSettings
+    from hmcore.eclipse.deck_info import DeckInfo
+    from hmcore.model.parameters import ParameterSpace
+    from hmcore.scoring.physics import check_physics
 
     space, info = ParameterSpace.reference(), DeckInfo.inspect(deck)
     rng = np.random.default_rng([seed, 17])
@@ -41,7 +41,7 @@ def draw_valid_truth(seed: int, deck: Path) -> dict[str, float]:
 
 
 def main() -> None:
-    from hmcore.diagnosis.hidden import write_hidden_deck_case
+    from hmcore.scenarios.hidden import write_hidden_deck_case
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True)

@@ -41,7 +41,7 @@ RHO = 0.7           # AR(1) coefficient between 10-day steps
 
 
 def truth_space():
-    from hmcore.parameters import Parameter, ParameterSpace
+    from hmcore.model.parameters import Parameter, ParameterSpace
 
     return ParameterSpace(parameters=(
         Parameter(name="permx_mult", kind="multiply", keywords=("PERMX",), low=0.3, high=3.0),
@@ -52,10 +52,10 @@ def truth_space():
 
 
 def run_truth(deck: Path, work: Path) -> tuple[pd.DataFrame, tuple[float, ...]]:
-    from hmcore.deck import prepare_run_deck
-    from hmcore.deck_info import DeckInfo
-    from hmcore.responses import read_responses
-    from hmcore.simulator import OpmFlow
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.eclipse.deck_info import DeckInfo
+    from hmcore.simulation.responses import read_responses
+    from hmcore.simulation.simulator import OpmFlow
 
     info = DeckInfo.inspect(deck)
     run_deck = prepare_run_deck(deck, TRUTH, truth_space(), work, info)
@@ -66,8 +66,8 @@ def run_truth(deck: Path, work: Path) -> tuple[pd.DataFrame, tuple[float, ...]]:
 def measured(truth: pd.DataFrame, report_days: tuple[float, ...], seed: int) -> pd.DataFrame:
     """Wide table (well, days) -> noisy WOPR, WWPR, WGPR, WWIR, WBHP at the report days (the
     summary also holds the simulator's own time steps between them)."""
-    from hmcore.results import natural_key
-    from hmcore.synthetic import ar1_series
+    from hmcore.ordering import natural_key
+    from hmcore.scenarios.synthetic import ar1_series
 
     rng = np.random.default_rng(seed)
     at_report = np.isin(np.round(truth.days.to_numpy(float), 2), np.round(report_days[1:], 2))

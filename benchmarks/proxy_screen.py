@@ -40,7 +40,7 @@ class Surrogate:
     def __init__(self, X: np.ndarray, E: np.ndarray, case):
         from scipy.interpolate import RBFInterpolator
 
-        from hmcore.case import PhysicsSettings
+        from hmcore.model.case import PhysicsSettings
 
         self.rbf = RBFInterpolator(X, np.log(E), kernel="thin_plate_spline", smoothing=1e-3,
                                    neighbors=200)
@@ -48,7 +48,7 @@ class Surrogate:
         self.physics = getattr(case, "physics", None) or PhysicsSettings()
 
     def record(self, job) -> dict:
-        from hmcore.physics import check_physics
+        from hmcore.scoring.physics import check_physics
 
         E = float(np.exp(self.rbf(np.asarray(job.action, float)[None])[0]))
         check = check_physics(job.values, self.case.space, self.case.info, self.physics)
@@ -60,8 +60,8 @@ class Surrogate:
 
 def run(method: str, seed: int, budget: int, workers: int, surrogate: Surrogate,
         sac: dict) -> np.ndarray:
-    from hmcore.agents import make_proposer
-    from hmcore.calibration import calibrate
+    from hmcore.calibration.methods import make_proposer
+    from hmcore.calibration.loop import calibrate
 
     proposer = make_proposer(method, surrogate.case.space.dim, seed, workers, budget,
                              **(sac if method == "sac" else {}))
@@ -72,7 +72,7 @@ def run(method: str, seed: int, budget: int, workers: int, surrogate: Surrogate,
 
 
 def main() -> None:
-    from hmcore.case import load_case, resolve_case_path
+    from hmcore.cases import load_case, resolve_case_path
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--journals", type=Path, required=True)

@@ -41,7 +41,7 @@ def runs_of(where: str, storage: Path) -> pd.DataFrame:
 
 
 def main() -> None:
-    from hmcore.benchmark import speedup
+    from hmcore.reporting.benchmark import speedup
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("one", help="the 1-worker benchmark (name or folder)")

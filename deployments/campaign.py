@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import Any
 from uuid import UUID
 
-from hmcore.agents import DEFAULT_AGENT, METHODS
-from hmcore.case import BUILTIN_CASES, case_name
+from hmcore.calibration.methods import DEFAULT_AGENT, METHODS
+from hmcore.cases import BUILTIN_CASES, case_name
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CAMPAIGN_ENTRYPOINT = "flows/campaign.py:campaign_flow"
@@ -77,7 +77,7 @@ def campaign_parameters(case: str = "synthetic", agent: str = DEFAULT_AGENT, bud
     """Parameters of ``campaign_flow`` for a deployment: case file and storage made absolute
     (the worker runs the flow in another working directory) and the campaign name fixed, so
     that every scheduled run resumes the same campaign and the report deployment can name it."""
-    from flows.campaign import default_campaign_name
+    from hmcore.calibration.registry import default_campaign_name
 
     case = str(case)
     if case not in BUILTIN_CASES:

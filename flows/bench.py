@@ -14,13 +14,13 @@ from flows.labels import named_run
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from storage import ArtifactStore, EvaluationJournal
-from hmcore.benchmark import case_truth
-from hmcore.agents import method_version
-from hmcore.evaluation import SCORING_VERSION
+from hmcore.reporting.benchmark import case_truth
+from hmcore.calibration.methods import method_version
+from hmcore.scoring.evaluation import SCORING_VERSION
 from tasks.bench import consolidate_bench
 from tasks.reference import reference_settings, run_references
 from flows.refuse import USER_ERRORS, input_problems, refused
-from hmcore.case import load_case
+from hmcore.cases import load_case
 from tasks.case import prepare_deck
 
 
@@ -77,7 +77,7 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
                task_runner: Runner = "threads", dask_address: str | None = None) -> dict:
     """Every method x seed at the same ``budget`` of simulator calls on ``case`` (the
     simulator calls on ``task_runner``, as in the campaign flow)."""
-    from hmcore.agents import AGENTS
+    from hmcore.calibration.methods import AGENTS
 
     logger = get_run_logger()
     storage = str(Path(storage).expanduser().resolve())

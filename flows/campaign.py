@@ -12,13 +12,16 @@ from typing import Annotated, Literal
 from prefect import flow, get_run_logger
 from pydantic import Field
 
-from hmcore.agents import DEFAULT_AGENT, METHODS, make_proposer, method_version
-from hmcore.calibration import Job, calibrate
-from hmcore.evaluation import SCORING_VERSION
+from hmcore.calibration.methods import make_proposer
+from hmcore.calibration.registry import (DEFAULT_AGENT, METHODS, default_campaign_name,
+                                         method_version)
+from hmcore.calibration.calls import Job
+from hmcore.calibration.loop import calibrate
+from hmcore.scoring.evaluation import SCORING_VERSION
 from flows.labels import Progress, campaign_run_name, tag_flow_run
 from storage import ArtifactStore, EvaluationJournal
 from flows.refuse import USER_ERRORS, input_problems, refused
-from hmcore.case import load_case
+from hmcore.cases import load_case
 from tasks.case import deck_file_hashes, prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
 from tasks.reference import reference_name, reference_settings, run_references
@@ -28,13 +31,6 @@ from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 
 DEFAULT_STORAGE = "./hmflow-storage"
-
-
-def default_campaign_name(case_name: str, agent: str, seed: int) -> str:
-    """CASE-AGENT-seedS; a method's later version is another campaign (CASE-sac-v2-seedS)."""
-    version = method_version(agent) if agent in METHODS else 1
-    tag = f"{agent}-v{version}" if version > 1 else agent
-    return f"{case_name}-{tag}-seed{seed}"
 
 
 def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> None:
@@ -153,7 +149,7 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
         seed: Seed of the method.
         storage: Artifact store directory.
         campaign: Campaign name; the same name resumes (default CASE-AGENT-seedS).
-        agent_settings: Settings of sac or sac-paper (advanced; see hmcore.agents).
+        agent_settings: Settings of sac or sac-paper (advanced; see hmcore.calibration.methods).
         reference: Campaign holding the two reference runs (the truth's or the deck's own
             values, and the prior centre), outside the budget; default CAMPAIGN-reference
             (a benchmark shares its own among its campaigns).

@@ -30,7 +30,7 @@ from storage import sha256_json
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from flows.refuse import USER_ERRORS, input_problems, refused
-from hmcore.case import load_case
+from hmcore.cases import load_case
 from tasks.case import fingerprint_differences, prepare_deck
 from tasks.diagnose import simulate_values, store_step
 from tasks.results import report as campaign_report
@@ -69,7 +69,7 @@ def campaign_start(store, name: str, case: str | None = None) -> tuple[str, dict
     named, None: the campaign's own). A case whose files differ from the campaign's (hashes
     of the case file, deck, includes and history) is refused: the best parameters belong to
     the campaign's case. LookupError when the campaign has no archived best."""
-    from hmcore.case import BUILTIN_CASES, load_case
+    from hmcore.cases import BUILTIN_CASES, load_case
 
     best, stored = store.latest(name, "best"), store.latest(name, "case")
     if best is None or stored is None:

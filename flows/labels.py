@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 from datetime import datetime, timezone
 
+from hmcore.calibration.registry import DEFAULT_AGENT, default_campaign_name
+from hmcore.cases import case_name
 from tasks.naming import artifact_key
 
 def _stamp() -> str:
@@ -16,13 +18,10 @@ def campaign_run_name() -> str:
     """``<campaign>-<UTC date and time>``; the campaign is the given one or its default name."""
     from prefect.runtime import flow_run
 
-    from flows.campaign import default_campaign_name
-    from hmcore.case import case_name
-
     p = flow_run.parameters
     try:
         name = p.get("campaign") or default_campaign_name(case_name(p.get("case", "synthetic")),
-                                                          p.get("agent", default_agent()), p.get("seed", 0))
+                                                          p.get("agent", DEFAULT_AGENT), p.get("seed", 0))
     except (OSError, ValueError):  # a bad case path: the flow itself reports it
         name = "campaign"
     return f"{name}-{_stamp()}"
@@ -77,10 +76,3 @@ class Progress:
                                  description=f"{self.campaign}: {self.done}/{self.budget} calls, "
                                              f"{best}")
 
-
-def default_agent() -> str:
-    """The campaign's default method (imported here, not at load: the agents pull in
-    gymnasium, and the report flow imports these labels too)."""
-    from hmcore.agents import DEFAULT_AGENT
-
-    return DEFAULT_AGENT

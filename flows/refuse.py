@@ -26,7 +26,7 @@ def refused(exc: BaseException) -> State:
 def input_problems(agent: str | None = None, budget: int | None = None,
                    workers: int | None = None, task_runner: str | None = None) -> list[str]:
     """The parameter rules a flow checks itself (the case file is checked by loading it)."""
-    from hmcore.agents import METHODS, budget_problem
+    from hmcore.calibration.methods import METHODS, budget_problem
     from flows.runners import RUNNERS
 
     problems = []

@@ -17,7 +17,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from hmcore.agents import ABLATIONS, AGENTS, DEFAULT_AGENT, METHODS
+from hmcore.calibration.methods import ABLATIONS, AGENTS, DEFAULT_AGENT, METHODS
 from hmcore.errors import CaseError
 from hmcore.units import deck_unit
 from hmflow.console import (Watch, bench_poll, campaign_poll, diagnosis_poll, prefect_environment,
@@ -92,7 +92,7 @@ def _folder(option: str, path: Path) -> Path:
 
 
 def _load(case: str):
-    from hmcore.case import load_case
+    from hmcore.cases import load_case
 
     try:
         return load_case(case)
@@ -121,7 +121,7 @@ def _num(v, digits=4) -> str:
 def print_tables(metrics: dict, title: str = "") -> None:
     """Print the paper's three tables (categories; C_match per well; GOR / water cut per well),
     in the paper's rounding."""
-    from hmcore.paper_tables import cell, paper_tables
+    from hmcore.reporting.paper_tables import cell, paper_tables
 
     heads = {"categories": "match by category", "wells": "C_match (%) per well and category",
              "ratios": "GOR and water cut per well (records used, left out and why)"}
@@ -180,7 +180,7 @@ def init(deck: Path = typer.Option(..., "--deck", help="The field's deck (.DATA)
          name: Optional[str] = typer.Option(None, "--name", help="Case name (default: from the "
                                             "deck's file name)")) -> None:
     """Write a starting case for a deck: observed data from its history, default parameters."""
-    from hmcore.case_init import starting_case, write_starting_case
+    from hmcore.model.case_init import starting_case, write_starting_case
 
     if summary is not None and observed is not None:
         err_console.print("[red]x[/] give --summary or --observed, not both")
@@ -250,14 +250,14 @@ def evaluate(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
              simulator: Optional[str] = typer.Option(None, "--simulator", help="'opm' or a command "
                                                      "template like 'flow {deck} --output-dir={run_dir}'")) -> None:
     """Run one simulation and score it: writes OUT/metrics.json and OUT/responses.parquet."""
-    from hmcore.evaluation import evaluate as run_one
-    from hmcore.evaluation import simulator_for
-    from hmcore.report import metrics_document
-    from hmcore.simulator import make_simulator
+    from hmcore.scoring.evaluation import evaluate as run_one
+    from hmcore.scoring.evaluation import simulator_for
+    from hmcore.reporting.report import metrics_document
+    from hmcore.simulation.simulator import make_simulator
 
     c = _load(case)
     if simulator:
-        from hmcore.validation import simulator_problems
+        from hmcore.model.validation import simulator_problems
 
         bad = simulator_problems(simulator, "--simulator")
         if bad:
@@ -349,7 +349,8 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     if fork is not None:
         _check_fork(fork, campaign, storage.resolve())
     _start_api()
-    from flows.campaign import campaign_flow, default_campaign_name
+    from flows.campaign import campaign_flow
+    from hmcore.calibration.registry import default_campaign_name
 
     name = campaign or default_campaign_name(c.name, agent, seed)
     storage = storage.resolve()
@@ -414,7 +415,7 @@ def _fit_workers(workers: int, threads: int, task_runner: str) -> int:
 
 
 def _check_agent(agent: str, budget: int, workers: int) -> None:
-    from hmcore.agents import METHODS, budget_problem
+    from hmcore.calibration.methods import METHODS, budget_problem
 
     if agent not in METHODS:
         err_console.print(f"[red]x[/] --agent must be one of {list(METHODS)}, got {agent!r}")
@@ -547,7 +548,7 @@ def tables(storage: Path = typer.Option(Path("./hmflow-storage"), "--storage"),
                                                        "tables as Markdown to this new file")) -> None:
     """The reference paper's three tables for a stored campaign, rescored from the stored
     summary with today's formulas (zero simulator calls)."""
-    from hmcore.paper_tables import markdown, metrics_from_summary, paper_tables
+    from hmcore.reporting.paper_tables import markdown, metrics_from_summary, paper_tables
     from storage import ArtifactStore, EvaluationJournal
 
     store = ArtifactStore(storage)
@@ -707,7 +708,7 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
         problems.append("--no-schedule takes no --cron or --interval")
     if case != "synthetic" and not Path(case).is_file():
         problems.append(f"--case {case}: no such file (a case TOML or 'synthetic')")
-    from hmcore.agents import METHODS, budget_problem
+    from hmcore.calibration.methods import METHODS, budget_problem
 
     if agent not in METHODS:
         problems.append(f"--agent must be one of {list(METHODS)}, got {agent!r}")
@@ -884,13 +885,13 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
     """Write a case whose "measured" history hides one model extension the base model lacks
     (the truth run + realistic correlated noise), to try `hmflow diagnose` on, then `hmflow
     reveal` to see whether it found it. The effect is recorded in OUT/hidden_effect.json."""
-    from hmcore.deck_info import DeckInfo
+    from hmcore.eclipse.deck_info import DeckInfo
     from hmcore.diagnosis.extensions import KINDS, base_values
-    from hmcore.diagnosis.generators import GENERATORS
-    from hmcore.diagnosis.hidden import (chosen_effect, draw_effect, draw_effects,
-                                         synthetic_deck_info, write_hidden_deck_case,
-                                         write_hidden_synthetic_case)
-    from hmcore.parameters import ParameterSpace
+    from hmcore.scenarios.generators import GENERATORS
+    from hmcore.scenarios.effects import chosen_effect
+    from hmcore.scenarios.generators import draw_effect, draw_effects
+    from hmcore.scenarios.hidden import (synthetic_deck_info, write_hidden_deck_case, write_hidden_synthetic_case)
+    from hmcore.model.parameters import ParameterSpace
 
     problems = []
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
@@ -919,7 +920,7 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
     created = not out.exists()
     try:
         if deck is None:
-            from hmcore.synthetic import SYNTHETIC_TRUTH
+            from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH
 
             truth = dict(SYNTHETIC_TRUTH)
             info = synthetic_deck_info(seed, out / "base-deck")
@@ -976,7 +977,8 @@ def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json
                                           "`hmflow diagnose`")) -> None:
     """Compare a diagnosis with the effect hidden in its case: right kind and well / layer
     ranked first, selected, held-back misfit improved. Exit 1 when it was not found."""
-    from hmcore.diagnosis.hidden import judge, judge_effects, load_hidden_effects
+    from hmcore.scenarios.judge import judge, judge_effects
+    from hmcore.scenarios.effects import load_hidden_effects
 
     for label, path in (("--hidden", hidden), ("--diagnosis", diagnosis)):
         if not path.is_file():
@@ -1037,7 +1039,7 @@ def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json
 
 def _signal_text(signal: dict) -> str:
     """One line on how strongly a hidden effect shows in the data (see
-    :func:`hmcore.diagnosis.hidden.effect_signal`)."""
+    :func:`hmcore.scenarios.hidden.effect_signal`)."""
     if "error" in signal:
         return signal["error"]
     text = (f"chi2 {signal['chi2_fit']:.0f} on the fitted history ({signal['n_fit']} points, "

@@ -11,8 +11,8 @@ import pandas as pd
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from hmcore import benchmark
-from hmcore.metrics import worst_well_cmatch
+from hmcore.reporting import benchmark
+from hmcore.scoring.metrics import worst_well_cmatch
 from storage import ArtifactStore, EvaluationJournal, code_version
 
 @task(name="consolidate-benchmark", cache_policy=NO_CACHE)

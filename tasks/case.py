@@ -10,9 +10,9 @@ from pathlib import Path
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from hmcore.case import Case
-from hmcore.deck import prepare_run_deck
-from hmcore.report import to_jsonable
+from hmcore.model.case import Case
+from hmcore.model.run_deck import prepare_run_deck
+from hmcore.reporting.report import to_jsonable
 from storage import ArtifactStore, ArtifactVersion, code_version, refuse_links
 
 
@@ -24,7 +24,7 @@ def deck_file_hashes(case: Case) -> dict[str, str]:
     """SHA-256 of every file the deck reads (the main file and its INCLUDEs, recursively,
     wherever they are); other files beside the deck do not count. Keyed by the path relative
     to the deck's folder (so the case folder can move), absolute for a file outside it."""
-    from hmcore.includes import deck_files
+    from hmcore.eclipse.includes import deck_files
 
     home = Path(case.deck).resolve().parent
 
@@ -90,8 +90,8 @@ def _meaning(version: ArtifactVersion) -> dict:
     """A stored case as the current code reads it: settings and parameters with today's
     defaults for what an older version did not store; paths and the case file's bytes
     (comments, layout) left out, the prepared deck by its files' hashes."""
-    import hmcore.case as case_models
-    from hmcore.parameters import Parameter
+    import hmcore.model.case as case_models
+    from hmcore.model.parameters import Parameter
 
     stored = version.read_json("case.json")
     meaning = {k: stored.get(k) for k in _COMPARED}

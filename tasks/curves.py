@@ -2,7 +2,7 @@
 
 ``<campaign>/curves/vN``: ``curves.parquet`` (one row per member, well, quantity and time:
 ``member`` (best, centre, truth or deck (the floor run), or call-N), ``call`` (from 1; 0 for the reference runs), then
-:mod:`hmcore.curves`' columns), ``forecast.parquet`` (:func:`hmcore.forecast.forecast_table`)
+:mod:`hmcore.simulation.curves`' columns), ``forecast.parquet`` (:func:`hmcore.simulation.forecast.forecast_table`)
 and ``forecast.json`` (member kind, the caveat to print, member calls, whether the floor run is
 the truth). The report is drawn from it, so it survives the deletion of the run dirs.
 """
@@ -15,10 +15,10 @@ import pandas as pd
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from hmcore.benchmark import case_truth
-from hmcore.calibration import best_record
-from hmcore.curves import read_curves
-from hmcore.forecast import DEFAULT_MEMBERS, choose_members, forecast_table
+from hmcore.reporting.benchmark import case_truth
+from hmcore.calibration.loop import best_record
+from hmcore.simulation.curves import read_curves
+from hmcore.simulation.forecast import DEFAULT_MEMBERS, choose_members, forecast_table
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version
 from tasks.reference import CENTRE, FLOOR
 

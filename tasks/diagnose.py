@@ -8,8 +8,8 @@ from typing import Any
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from hmcore.case import Case
-from hmcore.evaluation import Evaluation
+from hmcore.model.case import Case
+from hmcore.scoring.evaluation import Evaluation
 from storage import ArtifactStore, ArtifactVersion, code_version
 from tasks.simulate import evaluate_or_raise_transient, fresh_dir, retry_transient
 

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from hmcore import benchmark
-from hmcore.calibration import Job
-from hmcore.case import Case
-from hmcore.evaluation import SCORING_VERSION
+from hmcore.reporting import benchmark
+from hmcore.calibration.calls import Job
+from hmcore.model.case import Case
+from hmcore.scoring.evaluation import SCORING_VERSION
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal
 
 REFERENCE_AGENT = "reference"

@@ -12,12 +12,12 @@ from prefect.artifacts import (create_link_artifact, create_markdown_artifact,
 from prefect.cache_policies import NO_CACHE
 
 from tasks.naming import artifact_key
-from hmcore.calibration import best_record
-from hmcore.report import build_report, to_jsonable
-from hmcore.report_html import ReportInputs, render
+from hmcore.calibration.loop import best_record
+from hmcore.reporting.report import build_report, to_jsonable
+from hmcore.reporting.html import ReportInputs, render
 from tasks.curves import collect
 from tasks.reference import CENTRE, FLOOR, reference_name
-from hmcore.results import results_table
+from hmcore.reporting.results import results_table
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version, sha256_json
 
 SUMMARY_SUFFIXES = (".SMSPEC", ".UNSMRY", ".DATA", ".LOG", ".PRT", ".INIT", ".EGRID")
@@ -129,7 +129,7 @@ def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, be
     """Load what report.html is drawn from (stored artifacts only)."""
     import pandas as pd
 
-    from hmcore.diagnosis.residuals import ObservationSet
+    from hmcore.scoring.observations import ObservationSet
 
     case = store.latest(campaign, "case")
     observed = case.read_parquet("observed.parquet") if "observed.parquet" in case.files \
@@ -165,7 +165,7 @@ def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, be
 def publish(campaign: str, markdown: str, best_doc: dict | None, report_html: Path) -> None:
     """The report as Prefect artifacts: the Markdown, a link to the stored HTML report, and the
     paper's three tables of the best case in the paper's rounding."""
-    from hmcore.paper_tables import paper_tables
+    from hmcore.reporting.paper_tables import paper_tables
 
     create_markdown_artifact(markdown, key=artifact_key(campaign, "report"),
                              description=f"hmflow report {campaign}")
@@ -186,7 +186,7 @@ def publish(campaign: str, markdown: str, best_doc: dict | None, report_html: Pa
 
 def _truth_for(case_doc: dict) -> dict | None:
     """Known true parameters: ``truth.json`` beside the case file (the synthetic case) or the
-    ``truth`` of a ``hmflow hide`` case with nothing hidden (see hmcore.benchmark.case_truth)."""
-    from hmcore.benchmark import case_truth
+    ``truth`` of a ``hmflow hide`` case with nothing hidden (see hmcore.reporting.benchmark.case_truth)."""
+    from hmcore.reporting.benchmark import case_truth
 
     return case_truth(Path(case_doc["source"]))

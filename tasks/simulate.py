@@ -11,10 +11,10 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 
 from tasks.naming import simulate_run_name
-from hmcore.calibration import Job
-from hmcore.case import Case
-from hmcore.evaluation import evaluate, simulator_for
-from hmcore.report import to_jsonable
+from hmcore.calibration.calls import Job
+from hmcore.model.case import Case
+from hmcore.scoring.evaluation import evaluate, simulator_for
+from hmcore.reporting.report import to_jsonable
 from storage import ArtifactStore, EvaluationJournal
 
 
@@ -45,7 +45,7 @@ def fresh_dir(path: Path) -> Path:
 
 
 def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: Path):
-    """Evaluate ``values`` in ``run_dir`` (an :class:`~hmcore.evaluation.Evaluation`); a
+    """Evaluate ``values`` in ``run_dir`` (an :class:`~hmcore.scoring.evaluation.Evaluation`); a
     transient failure (killed by a signal) raises while Prefect still has retries left; a
     timeout is not retried (a model that is too slow is as slow the second time).
     Returns the evaluation and the attempt number."""
@@ -62,7 +62,7 @@ def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: P
 def observation_set(case: Case):
     """The case's measured rows with their noise level (built once per campaign): what the
     whitened residual vector of each call is made from, for the methods that need it."""
-    from hmcore.diagnosis.residuals import ObservationSet
+    from hmcore.scoring.observations import ObservationSet
 
     return ObservationSet.from_case(case)
 

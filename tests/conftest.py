@@ -99,12 +99,12 @@ class OpmRunCache:
 
     Thread-safe: two threads asking for the same values share one run; at most
     MAX_PARALLEL_SIMULATIONS simulations run at once. Each run is its own subprocess
-    (hmcore.simulator.OpmFlow).
+    (hmcore.simulation.simulator.OpmFlow).
     """
 
     def __init__(self, root: Path):
-        from hmcore.deck_info import DeckInfo
-        from hmcore.parameters import ParameterSpace
+        from hmcore.eclipse.deck_info import DeckInfo
+        from hmcore.model.parameters import ParameterSpace
 
         self.root = root
         self.info = DeckInfo.inspect(PUNQ_DECK)
@@ -119,8 +119,8 @@ class OpmRunCache:
 
     def run(self, values: dict[str, float] | None = None):
         """SimulationResult of the deck with ``values`` applied ({} = the unmodified deck)."""
-        from hmcore.deck import prepare_run_deck
-        from hmcore.simulator import OpmFlow
+        from hmcore.model.run_deck import prepare_run_deck
+        from hmcore.simulation.simulator import OpmFlow
 
         values = dict(values or {})
         key = self._key(values)
@@ -155,7 +155,7 @@ def punq_info(punq_dir):
     """DeckInfo of the shared PUNQ-S3 deck (parsed once per session)."""
     if not _opm_importable():
         pytest.skip("OPM Python packages (opm) not installed")
-    from hmcore.deck_info import DeckInfo
+    from hmcore.eclipse.deck_info import DeckInfo
 
     return DeckInfo.inspect(PUNQ_DECK)
 
@@ -168,7 +168,7 @@ def punq_case_toml(punq_dir, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def punq_case(punq_case_toml, punq_info):
-    from hmcore.case import load_case
+    from hmcore.cases import load_case
 
     return load_case(punq_case_toml)
 

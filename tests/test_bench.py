@@ -13,15 +13,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from hmcore.agents import AGENTS
-from hmcore.benchmark import LEVELS, per_run, summary
+from hmcore.calibration.methods import AGENTS
+from hmcore.reporting.benchmark import LEVELS, per_run, summary
 
 pytestmark = pytest.mark.opm
 BUDGET, SEEDS = 4, 1  # 4: the smallest budget every method runs (ES-MDA: 2 members, twice);
 # one seed, then the resumed run adds a second
 METHODS = ("lm", "esmda", "random")
 """The methods of the default run: a driver with Jacobian runs, an ensemble, a proposer (every
-method - all of :data:`hmcore.agents.AGENTS` - takes 7 min with 2 seeds, too much of CI's time:
+method - all of :data:`hmcore.calibration.methods.AGENTS` - takes 7 min with 2 seeds, too much of CI's time:
 `-m slow` runs them all; tests/test_methods.py holds every method to its budget)."""
 
 
@@ -146,7 +146,7 @@ def test_summary_counts_levels_and_gap_from_the_calls():
 def test_speedup_pairs_the_same_campaigns_of_two_benchmarks():
     """1 worker and 2 workers, the same method and seed: the speed-up is the wall-time ratio;
     a campaign only one benchmark ran has no row."""
-    from hmcore.benchmark import speedup
+    from hmcore.reporting.benchmark import speedup
 
     def runs(workers: int, seeds: list[int]) -> pd.DataFrame:
         rows = []

@@ -9,11 +9,11 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from hmcore.alignment import align
-from hmcore.case import load_case
-from hmcore.evaluation import score_responses
-from hmcore.responses import read_responses
-from hmcore.simulator import OpmFlow
+from hmcore.scoring.alignment import align
+from hmcore.cases import load_case
+from hmcore.scoring.evaluation import score_responses
+from hmcore.simulation.responses import read_responses
+from hmcore.simulation.simulator import OpmFlow
 from storage import ArtifactStore, EvaluationJournal
 
 PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
@@ -88,7 +88,7 @@ def test_archived_best_case_resimulates_to_the_same_metrics(campaign, tmp_path):
 
 def test_report_only_rerun_makes_zero_simulator_calls(campaign, monkeypatch):
     from flows.report import report_flow
-    import hmcore.simulator as simulator
+    import hmcore.simulation.simulator as simulator
 
     def forbidden(*args, **kwargs):
         raise AssertionError("the report stage must not run the simulator")
@@ -136,7 +136,7 @@ def test_tables_command_prints_the_papers_three_tables_from_storage(campaign, tm
     """`hmflow tables` rescores the stored best run with the paper's formulas, no simulator."""
     from typer.testing import CliRunner
 
-    import hmcore.simulator as simulator
+    import hmcore.simulation.simulator as simulator
     from hmflow.cli import app
 
     def forbidden(*args, **kwargs):
@@ -197,7 +197,7 @@ def test_sac_paper_campaign_journals_and_resumes_with_the_real_simulator(tmp_pat
 def test_a_call_journaled_before_its_worker_died_is_not_simulated_again(tmp_path):
     """A cluster reruns the task of a worker that died after journaling its record: the rerun
     returns the journaled record and neither simulates nor records again."""
-    from hmcore.calibration import Job
+    from hmcore.calibration.calls import Job
     from storage import ArtifactStore, EvaluationJournal
     from tasks.simulate import simulate
 

@@ -11,7 +11,7 @@ import pytest
 
 
 def _case_with_outside_include(tmp_path):
-    from hmcore.case import resolve_case_path
+    from hmcore.cases import resolve_case_path
 
     src = resolve_case_path("synthetic").parent
     case_dir, shared = tmp_path / "case", tmp_path / "shared"
@@ -30,7 +30,7 @@ def _case_with_outside_include(tmp_path):
 
 
 def test_deck_files_follow_includes_outside_the_folder_and_ignore_the_rest(tmp_path):
-    from hmcore.case import load_case
+    from hmcore.cases import load_case
     from tasks.case import deck_file_hashes
 
     case_file, inc = _case_with_outside_include(tmp_path)

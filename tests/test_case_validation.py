@@ -14,9 +14,9 @@ from typer.testing import CliRunner
 
 from conftest import (PUNQ_DECK, copy_punq_deck, requires_opm, requires_punq, sha256_file,
                       write_case_toml)
-from hmcore.case import load_case
+from hmcore.cases import load_case
 from hmcore.errors import CaseError
-from hmcore.observed import read_observed
+from hmcore.model.observed import read_observed
 
 pytestmark = [requires_punq, requires_opm]
 
@@ -368,8 +368,8 @@ def test_cli_check_missing_case_file(tmp_path):
 @pytest.fixture
 def no_simulator(monkeypatch):
     """Make every way to start a simulation fail the test (and record the attempt)."""
-    import hmcore.evaluation
-    import hmcore.simulator
+    import hmcore.scoring.evaluation
+    import hmcore.simulation.simulator
 
     calls = []
 
@@ -377,10 +377,10 @@ def no_simulator(monkeypatch):
         calls.append(args)
         pytest.fail("the simulator must not be called for an invalid case")
 
-    monkeypatch.setattr(hmcore.simulator, "_run_process", forbidden)
-    monkeypatch.setattr(hmcore.simulator, "make_simulator", forbidden)
-    monkeypatch.setattr(hmcore.evaluation, "evaluate", forbidden)
-    monkeypatch.setattr(hmcore.evaluation, "prepare_run_deck", forbidden)
+    monkeypatch.setattr(hmcore.simulation.simulator, "_run_process", forbidden)
+    monkeypatch.setattr(hmcore.simulation.simulator, "make_simulator", forbidden)
+    monkeypatch.setattr(hmcore.scoring.evaluation, "evaluate", forbidden)
+    monkeypatch.setattr(hmcore.scoring.evaluation, "prepare_run_deck", forbidden)
     return calls
 
 
@@ -493,14 +493,14 @@ def test_relperm_on_a_column_that_is_no_relative_permeability_is_refused(tmp_pat
 def test_table_multiply_scales_a_fluid_table_and_names_the_column_and_table(tmp_path):
     """RSVD item 2 (the initial dissolved gas) is scaled row by row; column 1 (the depth) and
     a table the deck lacks are refused with the columns and the tables it has."""
-    from hmcore.deck import prepare_run_deck
+    from hmcore.model.run_deck import prepare_run_deck
 
     case = load_case(make_case(tmp_path, extra=_aquct(2, kind="table_multiply", keyword="RSVD")))
     deck = prepare_run_deck(case.deck, {"aq": 0.5}, case.space, tmp_path / "run",
                             case.info).read_text()
     rsvd = deck[deck.index("\nRSVD\n"):].split("/")[0].split()
     assert [float(x) for x in rsvd[-4:]] == [2175.0, 37.0, 2496.0, 37.0]  # 74 x 0.5, depths kept
-    from hmcore.deck_info import _parse
+    from hmcore.eclipse.deck_info import _parse
 
     run_deck = tmp_path / "run" / case.deck.name
     assert list(_parse(run_deck)[0]["RSVD"][0][0].get_raw_data_list()) == [2175, 37, 2496, 37]

@@ -120,7 +120,7 @@ def test_the_help_lists_every_kind_and_generator():
     """``--kinds`` and ``hide --kind`` spell their choices out (so ``--help`` does not import
     the diagnosis): every family and every generator is there, and nothing else."""
     from hmcore.diagnosis.extensions import KINDS
-    from hmcore.diagnosis.generators import GENERATORS
+    from hmcore.scenarios.generators import GENERATORS
     from hmflow.cli import GENERATORS_HELP, KINDS_HELP
 
     assert KINDS_HELP.split(": ", 1)[1].split(", ") == list(KINDS)

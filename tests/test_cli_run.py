@@ -93,7 +93,7 @@ def test_diagnose_from_a_campaign_goes_into_its_report_and_the_campaign_still_re
     """`hmflow run` on a case file -> `hmflow diagnose --from-campaign` (its best, its case, no
     new case version) -> `hmflow run` resumes the same campaign; its report holds both parts
     (real OPM, real Prefect, real files)."""
-    from hmcore.synthetic import ensure_synthetic_case
+    from hmcore.scenarios.synthetic import ensure_synthetic_case
 
     shutil.copytree(Path(ensure_synthetic_case()).parent, tmp_path / "syn")
     args = ("--case", "syn/case.toml", "--agent", "random", "--seed", "1", "--workers", "2",

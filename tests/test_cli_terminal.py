@@ -171,8 +171,8 @@ def test_polls_survive_missing_files_and_count_what_appears(tmp_path):
     # calls stored under other settings are not counted: a resume the flow refuses never
     # shows a full bar first
     from flows.bench import same_settings
-    from hmcore.agents import method_version
-    from hmcore.evaluation import SCORING_VERSION
+    from hmcore.calibration.methods import method_version
+    from hmcore.scoring.evaluation import SCORING_VERSION
 
     (tmp_path / "b-random-s0" / "campaign.json").write_text(json.dumps(
         {"agent": "random", "seed": 0, "workers": 2, "scoring_version": SCORING_VERSION,

@@ -1,4 +1,4 @@
-"""The deck editor (hmcore.deck): per-run decks with MULTIPLY and skin edits, base never touched.
+"""The deck editor (hmcore.model.run_deck): per-run decks with MULTIPLY and skin edits, base never touched.
 
 Edited decks are checked with OPM's own parser (opm.io), not with hmflow's lexer: keyword
 order, COMPDAT item 11, grid properties after MULTIPLY and connection factors. One real OPM
@@ -15,10 +15,10 @@ import pytest
 
 from conftest import (PUNQ_DECK, PUNQ_DECK_FILES, PUNQ_DIR, copy_punq_deck, requires_opm,
                       requires_punq, sha256_file)
-from hmcore.deck import Multiply, edits_for, prepare_run_deck, render_deck
-from hmcore.deck_info import DeckInfo, _quiet_stdout
+from hmcore.model.run_deck import Multiply, edits_for, prepare_run_deck, render_deck
+from hmcore.eclipse.deck_info import DeckInfo, _quiet_stdout
 from hmcore.errors import CaseError
-from hmcore.parameters import Parameter, ParameterSpace
+from hmcore.model.parameters import Parameter, ParameterSpace
 
 pytestmark = [requires_punq, requires_opm]
 
@@ -335,7 +335,7 @@ def _scan_comment(line: str) -> str:
 def test_strip_comment_keeps_quoted_dashes_and_cuts_the_first_comment():
     from hypothesis import given, settings, strategies as st
 
-    from hmcore.eclipse_lexer import strip_comment
+    from hmcore.eclipse.lexer import strip_comment
 
     assert strip_comment("'PRO--1' 1 1 / -- a well") == "'PRO--1' 1 1 / "
     assert strip_comment("2* 0.5 --") == "2* 0.5 "

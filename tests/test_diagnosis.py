@@ -16,9 +16,10 @@ import pytest
 from hmcore.diagnosis.attribution import projector_basis, score_test
 from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings,
                                           run_lockstep)
-from hmcore.diagnosis.residuals import (ObservationSet, analyse_residuals, estimate_noise,
-                                        robust_variogram)
-from hmcore.parameters import Parameter, ParameterSpace
+from hmcore.scoring.observations import ObservationSet
+from hmcore.diagnosis.residuals import analyse_residuals
+from hmcore.scoring.noise import estimate_noise, robust_variogram
+from hmcore.model.parameters import Parameter, ParameterSpace
 
 PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
 needs_punq = pytest.mark.skipif(not (PUNQ / "PUNQS3.DATA").is_file(),
@@ -230,14 +231,14 @@ def punq_info():
     pytest.importorskip("opm.io")
     if not (PUNQ / "PUNQS3.DATA").is_file():
         pytest.skip(f"PUNQ-S3 data not found at {PUNQ}")
-    from hmcore.deck_info import DeckInfo
+    from hmcore.eclipse.deck_info import DeckInfo
 
     return DeckInfo.inspect(PUNQ / "PUNQS3.DATA")
 
 
 @needs_punq
 def test_extension_library_for_punq(punq_info, tmp_path):
-    from hmcore.deck import prepare_run_deck
+    from hmcore.model.run_deck import prepare_run_deck
     from hmcore.diagnosis.extensions import (KINDS, build_candidates, dated_productivity,
                                              extended_space)
 
@@ -295,7 +296,8 @@ def test_extension_library_for_punq(punq_info, tmp_path):
 def test_extension_library_for_the_synthetic_deck(tmp_path):
     pytest.importorskip("opm.io")
     from hmcore.diagnosis.extensions import build_candidates
-    from hmcore.diagnosis.hidden import draw_effect, synthetic_deck_info
+    from hmcore.scenarios.generators import draw_effect
+    from hmcore.scenarios.hidden import synthetic_deck_info
 
     info = synthetic_deck_info(0, tmp_path)
     space = ParameterSpace.reference()
@@ -438,9 +440,9 @@ class LinearSimulator:
 def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0, hidden_from=None, also=(),
                  starts=False, columns=False, beyond=0.0):
     pytest.importorskip("opm.io")
-    from hmcore.case import load_case
-    from hmcore.diagnosis.hidden import noisy_history
-    from hmcore.synthetic import DECK_NAME, make_fields, render_deck
+    from hmcore.cases import load_case
+    from hmcore.scenarios.hidden import noisy_history
+    from hmcore.scenarios.synthetic import DECK_NAME, make_fields, render_deck
 
     field_rng, _ = np.random.default_rng(0).spawn(2)
     (tmp_path / DECK_NAME).write_text(render_deck(make_fields(field_rng), 0))
@@ -464,7 +466,7 @@ def test_diagnosis_orchestration_on_a_linear_simulator(tmp_path, hidden):
 
     param, value = None, 1.0
     if hidden:
-        from hmcore.diagnosis.hidden import synthetic_deck_info
+        from hmcore.scenarios.hidden import synthetic_deck_info
 
         cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
                                                    ParameterSpace.reference(), {"skin": 4.0})}
@@ -517,7 +519,7 @@ def test_a_region_beside_a_well_is_named_by_a_moved_box(tmp_path):
     box that is the truth's is named - not a centred one, not a skin."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import shifted_regions, well_column
-    from hmcore.diagnosis.hidden import synthetic_deck_info
+    from hmcore.scenarios.hidden import synthetic_deck_info
 
     info = synthetic_deck_info(0, tmp_path / "d")
     moved = {c.id: c for c in shifted_regions(info, "PROD2")}
@@ -561,9 +563,10 @@ def test_an_effect_the_library_holds_in_part_is_named_by_its_nearest_candidate(
     the verdict says that something no family explains remains (issue 18, point 3)."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import build_candidates
-    from hmcore.diagnosis.generators import generate
-    from hmcore.diagnosis.hidden import judge_effects, synthetic_deck_info
-    from hmcore.synthetic import SYNTHETIC_TRUTH
+    from hmcore.scenarios.generators import generate
+    from hmcore.scenarios.judge import judge_effects
+    from hmcore.scenarios.hidden import synthetic_deck_info
+    from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH
 
     info = synthetic_deck_info(0, tmp_path / "d")
     space = ParameterSpace.reference()
@@ -590,7 +593,7 @@ def test_a_cause_that_stops_at_an_open_end_of_its_range_is_flagged(tmp_path):
     complete effect, with no warning."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import build_candidates, open_end
-    from hmcore.diagnosis.hidden import synthetic_deck_info
+    from hmcore.scenarios.hidden import synthetic_deck_info
     from hmcore.diagnosis.report import markdown_report
 
     cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
@@ -623,7 +626,7 @@ def test_a_candidate_under_the_line_is_confirmed_by_its_recalibration(tmp_path):
     (The line is raised out of reach here so that only the screen lets the effect through.)"""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import build_candidates
-    from hmcore.diagnosis.hidden import synthetic_deck_info
+    from hmcore.scenarios.hidden import synthetic_deck_info
 
     cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
                                                ParameterSpace.reference(), {"skin": 4.0})}
@@ -673,7 +676,7 @@ def test_an_effect_only_the_held_back_history_shows_is_found_on_a_later_window(t
     effect there. A control with nothing hidden never looks further."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import build_candidates
-    from hmcore.diagnosis.hidden import synthetic_deck_info
+    from hmcore.scenarios.hidden import synthetic_deck_info
 
     cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
                                                ParameterSpace.reference(), {"skin": 4.0})}
@@ -704,7 +707,7 @@ def test_the_origin_rolls_on_until_a_window_names_the_cause(tmp_path):
     alone the answer stays unnamed and says why it stopped."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import build_candidates
-    from hmcore.diagnosis.hidden import synthetic_deck_info
+    from hmcore.scenarios.hidden import synthetic_deck_info
     from hmcore.diagnosis.rounds import diagnose_all
 
     cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
@@ -749,7 +752,7 @@ def test_a_productivity_change_from_a_date_is_named_with_its_start(tmp_path):
     without a date. A control's scans stay under the Bonferroni line."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import build_candidates
-    from hmcore.diagnosis.hidden import synthetic_deck_info
+    from hmcore.scenarios.hidden import synthetic_deck_info
 
     cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
                                                ParameterSpace.reference(), {"skin": 4.0})}
@@ -1060,7 +1063,8 @@ def test_judge_counts_the_whitened_held_back_misfit_only_where_the_truth_cannot_
     held-back E than the calibrated base (the noise decides E there: PUNQ-S3, aquifer 2 x9.2,
     truth 0.00876 against the base's 0.00789); then the whitened held-back SSR must drop."""
     from hmcore.diagnosis.extensions import Candidate
-    from hmcore.diagnosis.hidden import HiddenEffect, judge
+    from hmcore.scenarios.effects import HiddenEffect
+    from hmcore.scenarios.judge import judge
 
     par = Parameter(name="aquifer_perm2", kind="item_multiply", low=0.05, high=20.0,
                     keywords=("AQUCT",), item=4, match="2")
@@ -1089,7 +1093,7 @@ def test_two_hidden_effects_are_both_accepted_each_with_its_gain(tmp_path):
     whole gain is that of the pair (issue 18, point 2)."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import build_candidates
-    from hmcore.diagnosis.hidden import synthetic_deck_info
+    from hmcore.scenarios.hidden import synthetic_deck_info
 
     cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
                                                ParameterSpace.reference(), {"skin": 4.0})}
@@ -1182,7 +1186,8 @@ def test_a_cause_explaining_a_minority_of_the_misfit_leads_with_unexplained(
     else:
         assert out is doc and "lead" not in out
     if leads:  # the judge of one library effect reads a partial answer as judge_effects does
-        from hmcore.diagnosis.hidden import HiddenEffect, judge
+        from hmcore.scenarios.effects import HiddenEffect
+        from hmcore.scenarios.judge import judge
         from hmcore.diagnosis.extensions import Candidate
 
         skin = Candidate("well_skin:PROD3", "well_skin",
@@ -1210,7 +1215,8 @@ def test_the_sweep_evidence_of_an_effect_of_no_family_leads_with_unexplained_onc
 
     from hmcore.diagnosis import DiagnosisSettings
     from hmcore.diagnosis.decision import lead_unexplained
-    from hmcore.diagnosis.hidden import judge_effects, load_hidden_effects
+    from hmcore.scenarios.judge import judge_effects
+    from hmcore.scenarios.effects import load_hidden_effects
 
     kept = (Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "diagnosis-sweep"
             / "before-endpoint" / "evidence" / "synthetic-pvt-33")
@@ -1237,7 +1243,7 @@ def test_a_late_effect_behind_a_vetoed_cause_is_found_on_a_later_window(tmp_path
     (issue 18, points 1 and 2)."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
     from hmcore.diagnosis.extensions import KINDS, build_candidates
-    from hmcore.diagnosis.hidden import synthetic_deck_info
+    from hmcore.scenarios.hidden import synthetic_deck_info
 
     cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),
                                                ParameterSpace.reference(), {"skin": 4.0})}

@@ -113,7 +113,7 @@ def test_the_budget_counts_every_simulation_from_a_given_vector(tmp_path, budget
     that asked for trial steps past its cap) and then fail in the ranking. A given vector with
     a hidden skin to find: never more calls than the budget."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
-    from hmcore.parameters import Parameter
+    from hmcore.model.parameters import Parameter
 
     hidden = Parameter(name="skin_PROD3", kind="skin", wells=("PROD3",), low=-5, high=30)
     case, sim, truth = _linear_case(tmp_path, hidden, 12.0)
@@ -219,8 +219,8 @@ def test_from_campaign_with_a_small_budget_is_refused_and_a_larger_one_is_kept(t
     line before any simulation; with a budget that covers the minimum of one kind, exactly as
     many simulations as run directories, never more than the budget (real OPM, real Prefect;
     the campaign's archived best is stored directly, as `hmflow run` archives it)."""
-    from hmcore.case import load_case
-    from hmcore.synthetic import SYNTHETIC_TRUTH, ensure_synthetic_case
+    from hmcore.cases import load_case
+    from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH, ensure_synthetic_case
     from storage import ArtifactStore
     from tasks.case import prepare_deck
 

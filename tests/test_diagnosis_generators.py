@@ -11,19 +11,19 @@ from pathlib import Path
 
 import pytest
 
-from hmcore.parameters import ParameterSpace
+from hmcore.model.parameters import ParameterSpace
 
 pytest.importorskip("opm.io")
 
-from hmcore.diagnosis.generators import GENERATORS  # noqa: E402 (after the skip)
+from hmcore.scenarios.generators import GENERATORS  # noqa: E402 (after the skip)
 
 SWEEP_SEEDS = (31, 32, 33)
 
 
 @pytest.fixture(scope="module")
 def synthetic(tmp_path_factory):
-    from hmcore.diagnosis.hidden import synthetic_deck_info
-    from hmcore.synthetic import SYNTHETIC_TRUTH
+    from hmcore.scenarios.hidden import synthetic_deck_info
+    from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH
 
     return synthetic_deck_info(0, tmp_path_factory.mktemp("deck")), dict(SYNTHETIC_TRUTH)
 
@@ -31,7 +31,7 @@ def synthetic(tmp_path_factory):
 @pytest.mark.parametrize("seed", range(6))
 def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     from hmcore.diagnosis.extensions import build_candidates, shifted_regions, well_column
-    from hmcore.diagnosis.generators import generate
+    from hmcore.scenarios.generators import generate
 
     info, truth = synthetic
     space = ParameterSpace.reference()
@@ -67,7 +67,7 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     assert centre not in columns  # beside a well, not centred on one
     wi, wj = well_column(info, region.candidate.wells[0])
     assert min(abs(centre[0] - wi), abs(centre[1] - wj)) >= 3  # off in both i and j
-    from hmcore.diagnosis.hidden import boxes_agree
+    from hmcore.scenarios.judge import boxes_agree
 
     assert boxes_agree(b, b) and not boxes_agree(b, None)
     assert boxes_agree((1, 7, 1, 7), (2, 6, 2, 6)) and boxes_agree((1, 7, 1, 7), (4, 10, 1, 7))
@@ -114,8 +114,8 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
 
 def test_the_deck_writer_applies_every_generated_effect(synthetic, tmp_path):
     """Each generated effect changes the truth deck where it says (no simulation)."""
-    from hmcore.deck import prepare_run_deck
-    from hmcore.diagnosis.generators import GENERATORS, generate
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.scenarios.generators import GENERATORS, generate
 
     info, truth = synthetic
     space = ParameterSpace.reference()
@@ -148,7 +148,7 @@ def test_an_effect_the_held_back_history_shows_is_visible_to_the_longer_record()
     late_productivity 31) is visible - the diagnosis must take the longer record, and `none`
     is not right for it; one the globals absorb on both (offcentre 33: 9 and 22 left) is not;
     the held-back line is the diagnosis's own (3 sd of the chi-square of 260 points: 68)."""
-    from hmcore.diagnosis.hidden import visible
+    from hmcore.scenarios.judge import visible
 
     late = {"visible_in_fitted_history": False, "chi2_fit": 0.0, "chi2_heldout": 912.0,
             "n_heldout_measured": 260}
@@ -163,8 +163,8 @@ def test_an_effect_the_held_back_history_shows_is_visible_to_the_longer_record()
 
 def test_the_judge_asks_each_effect_its_family_and_wells(synthetic):
     from hmcore.diagnosis.extensions import build_candidates
-    from hmcore.diagnosis.generators import generate
-    from hmcore.diagnosis.hidden import judge_effects
+    from hmcore.scenarios.generators import generate
+    from hmcore.scenarios.judge import judge_effects
 
     info, truth = synthetic
     space = ParameterSpace.reference()
@@ -231,7 +231,7 @@ def test_a_sweep_row_is_judged_again_from_its_kept_evidence(synthetic, tmp_path)
     fitted history does not show as right."""
     import gzip
 
-    from hmcore.diagnosis.generators import generate
+    from hmcore.scenarios.generators import generate
 
     info, truth = synthetic
     (region,) = generate("offcentre_region", 1, info, ParameterSpace.reference(), truth)

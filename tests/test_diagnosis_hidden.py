@@ -100,9 +100,9 @@ def _signal(case_dir: Path) -> dict | None:
 
 def assert_found(doc: dict, effect, case_dir: Path) -> None:
     """The hidden kind (and well / layer / plane / aquifer / phase) ranks first, is selected,
-    and the held-back misfit improves (see :func:`hmcore.diagnosis.hidden.judge`; ``case_dir``
+    and the held-back misfit improves (see :func:`hmcore.scenarios.judge.judge`; ``case_dir``
     holds hidden_effect.json with the truth's own held-back E)."""
-    from hmcore.diagnosis.hidden import judge
+    from hmcore.scenarios.judge import judge
 
     j = judge(doc, effect, _signal(case_dir))
     what = f"hidden {j['hidden']} = {j.get('value', 0):.4g}; ranked {j['ranking']}; {j['verdict']}"
@@ -123,7 +123,7 @@ def assert_found_where_visible(doc: dict, effect, case_dir: Path) -> None:
     from hmcore.diagnosis.decision import heldout_noise_line
     from hmcore.diagnosis.settings import DiagnosisSettings
 
-    from hmcore.diagnosis.hidden import judge
+    from hmcore.scenarios.judge import judge
 
     signal = _signal(case_dir)
     if signal["visible_in_fitted_history"] or judge(doc, effect, signal)["found"]:
@@ -138,9 +138,9 @@ def assert_found_where_visible(doc: dict, effect, case_dir: Path) -> None:
 
 
 def diagnose_synthetic(tmp: Path, kind: str | None, seed: int):
-    from hmcore.case import load_case
+    from hmcore.cases import load_case
     from hmcore.diagnosis import diagnose, local_evaluator
-    from hmcore.diagnosis.hidden import write_hidden_synthetic_case
+    from hmcore.scenarios.hidden import write_hidden_synthetic_case
 
     start = time.perf_counter()
     case_toml, effect = write_hidden_synthetic_case(tmp / "case", seed, kind)
@@ -154,9 +154,9 @@ def diagnose_synthetic(tmp: Path, kind: str | None, seed: int):
 def diagnose_punq(tmp: Path, kind: str, seed: int, *,
                   history_end: float | None = PUNQ_HISTORY_END,
                   record_end: float | None = PUNQ_RECORD_END):
-    from hmcore.case import load_case
+    from hmcore.cases import load_case
     from hmcore.diagnosis import diagnose, local_evaluator
-    from hmcore.diagnosis.hidden import write_hidden_deck_case
+    from hmcore.scenarios.hidden import write_hidden_deck_case
 
     if not (PUNQ / "PUNQS3.DATA").is_file():
         pytest.skip(f"PUNQ-S3 data not found at {PUNQ}")
@@ -233,7 +233,7 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
     from typer.testing import CliRunner
 
     from flows.diagnose import STEPS, diagnose_command
-    from hmcore.diagnosis.hidden import load_hidden_effect
+    from hmcore.scenarios.effects import load_hidden_effect
     from hmflow.cli import app
     from storage import ArtifactStore
 
@@ -304,8 +304,8 @@ def test_effect_signal_is_zero_for_a_neutral_effect_and_names_an_invisible_one(t
     _opm()
     from typer.testing import CliRunner
 
-    from hmcore.diagnosis.hidden import effect_signal
-    from hmcore.synthetic import SYNTHETIC_TRUTH
+    from hmcore.scenarios.hidden import effect_signal
+    from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH
     from hmflow.cli import app
 
     runner = CliRunner()

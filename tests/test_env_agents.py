@@ -7,11 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from hmcore.agents import Feedback, RandomProposer, SACProposer, SACSettings, make_proposer
-from hmcore.calibration import Job, best_record, calibrate
-from hmcore.env import HistoryMatchingEnv
-from hmcore.evaluation import Evaluation, Status
-from hmcore.parameters import ParameterSpace
+from hmcore.calibration.methods import Feedback, RandomProposer, SACProposer, SACSettings, make_proposer
+from hmcore.calibration.calls import Job
+from hmcore.calibration.loop import best_record, calibrate
+from hmcore.calibration.methods.env import HistoryMatchingEnv
+from hmcore.scoring.evaluation import Evaluation, Status
+from hmcore.model.parameters import ParameterSpace
 
 SPACE = ParameterSpace.reference()
 TARGET = np.array([0.3, -0.5, 0.6, -0.2, 0.1])
@@ -145,7 +146,7 @@ def test_make_proposer_rejects_unknown_agent():
 
 
 def test_feedback_for_failure_uses_penalty():
-    from hmcore.calibration import feedback_of
+    from hmcore.calibration.loop import feedback_of
 
     assert feedback_of({"reward": -10.0, "E": None, "penalty": 10.0}) == Feedback(-10.0, 10.0, False)
     assert feedback_of({"reward": -0.5, "E": 0.4, "penalty": 0.1}) == Feedback(-0.5, 0.4, True,
@@ -156,7 +157,7 @@ def test_feedback_for_failure_uses_penalty():
 def test_ablations_are_sac_with_one_setting_changed_and_learn_another_cost():
     """The judge (reward, E) is the same for every method; an ablation changes what the agent
     learns from: E without the penalty, or E + lambda x the worst well-response loss."""
-    from hmcore.agents import ABLATIONS, METHODS, method_version
+    from hmcore.calibration.methods import ABLATIONS, METHODS, method_version
 
     assert set(ABLATIONS) <= set(METHODS) and all(b == "sac" for b, _ in ABLATIONS.values())
     assert {method_version(m) for m in ABLATIONS} == {method_version("sac")}
@@ -179,7 +180,7 @@ def test_ablations_are_sac_with_one_setting_changed_and_learn_another_cost():
 
 def test_sac_learns_from_failures_capped_at_the_worst_scored_cost():
     """A failed run's penalty (10) must not dwarf the E spread the critic has to learn."""
-    from hmcore.agents.base import Proposal
+    from hmcore.calibration.methods.base import Proposal
 
     p = SACProposer(SPACE.dim, 0, SACSettings(learning_starts=4, failure_cost_factor=1.5,
                                               reward_transform="log", reward_scale=1.0))
@@ -209,7 +210,7 @@ def test_sac_paper_is_sb3_learn_over_the_env_with_the_papers_settings():
     one-step episode), lr 3e-4, buffer 10,000, batch 64, SB3's defaults elsewhere."""
     from stable_baselines3 import SAC
 
-    from hmcore.agents.sac_paper import BatchedEnv, PaperSAC
+    from hmcore.calibration.methods.sac_paper import BatchedEnv, PaperSAC
 
     p = make_proposer("sac-paper", SPACE.dim, 0)
     assert isinstance(p, PaperSAC)
@@ -260,7 +261,7 @@ def test_sac_paper_refuses_a_budget_that_is_not_a_multiple_of_the_workers():
 
 
 def test_trust_region_grows_on_successes_shrinks_on_failures_and_restarts():
-    from hmcore.agents.trust_region import TrustRegion, TrustRegionSettings
+    from hmcore.calibration.methods.trust_region import TrustRegion, TrustRegionSettings
 
     tr = TrustRegion(5, TrustRegionSettings(side_init=0.8, side_min=0.1))
     assert np.all(tr.bounds()[0] == -1) and np.all(tr.bounds()[1] == 1)  # nothing told yet
@@ -282,7 +283,7 @@ def test_trust_region_grows_on_successes_shrinks_on_failures_and_restarts():
 def test_sac_starts_on_sobol_points_then_proposes_apart_inside_its_trust_region():
     from scipy.stats import qmc
 
-    from hmcore.agents.base import Proposal
+    from hmcore.calibration.methods.base import Proposal
 
     p = SACProposer(SPACE.dim, 3, SACSettings(learning_starts=4, start="sobol", candidates=512))
     first = np.stack([q.action for q in p.ask(4)])

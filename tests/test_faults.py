@@ -70,7 +70,7 @@ def _nan_summary(truth_dir: Path, dest: Path) -> tuple[Path, Path]:
 
 @pytest.mark.opm
 def test_a_campaign_survives_every_fault_and_records_its_kind(tmp_path, monkeypatch):
-    from hmcore.case import resolve_case_path
+    from hmcore.cases import resolve_case_path
 
     src = resolve_case_path("synthetic").parent
     case_dir = tmp_path / "case"

@@ -20,7 +20,8 @@ import tomlkit
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hmcore.case import CaseFile, resolve_case_path
+from hmcore.model.case import CaseFile
+from hmcore.cases import resolve_case_path
 
 pytestmark = pytest.mark.opm  # the deck is read with OPM's parser (no simulation)
 
@@ -68,7 +69,7 @@ def bad_case(draw):
         return data, csv, key
     if kind == "unknown_section_key":
         section = draw(st.sampled_from(["case", "misfit", "simulator", "physics"]))
-        from hmcore.case import _SECTIONS
+        from hmcore.model.case import _SECTIONS
 
         key = draw(words.filter(lambda k: k not in _SECTIONS[section].model_fields))
         data.setdefault(section, {})[key] = draw(st.integers())
@@ -212,15 +213,15 @@ def refused(monkeypatch):
     """Run `hmflow evaluate` on a case folder; the simulator must never start."""
     from typer.testing import CliRunner
 
-    import hmcore.evaluation
-    import hmcore.simulator
+    import hmcore.scoring.evaluation
+    import hmcore.simulation.simulator
     from hmflow.cli import app
 
     def started(*args, **kwargs):
         raise AssertionError("a simulator was started on bad input")
 
-    monkeypatch.setattr(hmcore.evaluation, "evaluate", started)
-    monkeypatch.setattr(hmcore.simulator, "run_in_own_group", started)
+    monkeypatch.setattr(hmcore.scoring.evaluation, "evaluate", started)
+    monkeypatch.setattr(hmcore.simulation.simulator, "run_in_own_group", started)
     runner = CliRunner()
 
     def run(toml, csv: str) -> tuple[str, Path, Path]:

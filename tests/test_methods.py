@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hmcore.agents import AGENTS, budget_problem, make_proposer
-from hmcore.calibration import best_record, calibrate
-from hmcore.parameters import ParameterSpace
+from hmcore.calibration.methods import AGENTS, budget_problem, make_proposer
+from hmcore.calibration.loop import best_record, calibrate
+from hmcore.model.parameters import ParameterSpace
 
 SPACE = ParameterSpace.reference()
 TARGET = np.array([0.3, -0.5, 0.6, -0.2, 0.1])

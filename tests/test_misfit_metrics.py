@@ -13,9 +13,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hmcore.alignment import align
-from hmcore.metrics import CATEGORIES, OPTIONAL, cmatch, compute_metrics, nmse, r2
-from hmcore.misfit import PRIMARY, misfit, response_range
+from hmcore.scoring.alignment import align
+from hmcore.scoring.metrics import CATEGORIES, OPTIONAL, cmatch, compute_metrics, nmse, r2
+from hmcore.scoring.misfit import PRIMARY, misfit, response_range
 
 QUANTITIES = ("WBHP", "WOPR", "WWPR", "WGPR", "WGOR", "WWCT")
 PRIMARY_QUANTITIES = tuple(PRIMARY.values())

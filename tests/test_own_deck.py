@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from hmcore.case import load_case
+from hmcore.cases import load_case
 from hmcore.errors import CaseError
 from hmcore.units import convert, factor_to_deck
 from hmflow.cli import app
@@ -167,9 +167,9 @@ high = 10.0
 
 
 def test_fault_multiplier_is_written_as_multflt_that_opm_reads(tmp_path):
-    from hmcore.deck import prepare_run_deck
-    from hmcore.deck_info import DeckInfo
-    from hmcore.parameters import Parameter, ParameterSpace
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.eclipse.deck_info import DeckInfo
+    from hmcore.model.parameters import Parameter, ParameterSpace
     from tests.conftest import copy_punq_deck
 
     deck = copy_punq_deck(tmp_path / "deck")
@@ -188,7 +188,7 @@ def test_fault_multiplier_is_written_as_multflt_that_opm_reads(tmp_path):
 
 @needs_spe9
 def test_spe9_permeability_x3_is_not_invalid(spe9_case):
-    from hmcore.physics import check_physics
+    from hmcore.scoring.physics import check_physics
 
     case = load_case(spe9_case)
     values = {"poro_mult": 1.0, "permx_mult": 3.0, "permy_mult": 3.0, "permz_mult": 3.0,
@@ -202,7 +202,7 @@ def test_spe9_permeability_x3_is_not_invalid(spe9_case):
 @pytest.mark.opm
 @needs_spe9
 def test_spe9_injector_rate_and_bhp_are_matched(spe9_case, tmp_path):
-    from hmcore.evaluation import evaluate, score_responses
+    from hmcore.scoring.evaluation import evaluate, score_responses
 
     case = load_case(spe9_case)
     truth = {"poro_mult": 1.0, "permx_mult": 1.8, "permy_mult": 1.8, "permz_mult": 0.6,
@@ -213,7 +213,7 @@ def test_spe9_injector_rate_and_bhp_are_matched(spe9_case, tmp_path):
     # the injector's BHP is in E; its rate, fixed by the RATE control, is not
     assert set(s["per_well_response"]["INJE1"]) == {"bhp"}
     assert s["per_well_response"]["INJE1"]["bhp"] < 0.05
-    from hmcore.alignment import align
+    from hmcore.scoring.alignment import align
 
     pairs = align(case.observed, ev.responses, case.time_tolerance_days).pairs
     inje = pairs[pairs.well == "INJE1"]
@@ -252,11 +252,11 @@ def _punq_with_multnum(tmp_path: Path) -> Path:
 
 
 def test_region_multiplier_becomes_multireg_and_lands_in_its_region(tmp_path):
-    from hmcore.deck import prepare_run_deck
-    from hmcore.deck_info import DeckInfo, _parse
-    from hmcore.parameters import Parameter, ParameterSpace
-    from hmcore.physics import check_physics
-    from hmcore.case import PhysicsSettings
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.eclipse.deck_info import DeckInfo, _parse
+    from hmcore.model.parameters import Parameter, ParameterSpace
+    from hmcore.scoring.physics import check_physics
+    from hmcore.model.case import PhysicsSettings
 
     deck = _punq_with_multnum(tmp_path)
     info = DeckInfo.inspect(deck)
@@ -331,7 +331,7 @@ def test_dates_are_accepted_where_days_are(tmp_path):
 def test_init_commented_parameters_load_when_switched_on(tmp_path):
     """Every block `init` writes commented out (per-well skins, per-region permeability,
     aquifer strength) is a valid parameter of this deck once its '# ' is removed."""
-    from hmcore.case_init import starting_case, write_starting_case
+    from hmcore.model.case_init import starting_case, write_starting_case
 
     deck = _punq_with_multnum(tmp_path)
     start = starting_case(deck, "p", PUNQ_OBS_FULL)
@@ -346,8 +346,8 @@ def test_init_commented_parameters_load_when_switched_on(tmp_path):
 
 @pytest.mark.opm
 def test_stopping_at_the_last_observation_gives_the_same_misfit(tmp_path):
-    from hmcore.evaluation import evaluate
-    from hmcore.responses import last_time
+    from hmcore.scoring.evaluation import evaluate
+    from hmcore.simulation.responses import last_time
 
     obs = pd.read_csv(PUNQ_OBS_FULL)
     obs[obs.days <= 1500].to_csv(tmp_path / "early.csv", index=False)
@@ -369,11 +369,11 @@ def test_stopping_at_the_last_observation_gives_the_same_misfit(tmp_path):
 
 @pytest.mark.opm
 def test_wpimult_follows_every_compdat_of_its_well_and_changes_the_run(tmp_path):
-    from hmcore.deck import prepare_run_deck
-    from hmcore.deck_info import DeckInfo
-    from hmcore.parameters import Parameter, ParameterSpace
-    from hmcore.responses import read_responses
-    from hmcore.simulator import OpmFlow
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.eclipse.deck_info import DeckInfo
+    from hmcore.model.parameters import Parameter, ParameterSpace
+    from hmcore.simulation.responses import read_responses
+    from hmcore.simulation.simulator import OpmFlow
 
     info = DeckInfo.inspect(PUNQ_DECK)
     space = ParameterSpace(parameters=(Parameter(name="pi4", kind="wpimult", wells=("PRO-4",),
@@ -394,12 +394,12 @@ def test_wpimult_follows_every_compdat_of_its_well_and_changes_the_run(tmp_path)
 
 @pytest.mark.opm
 def test_a_dated_wpimult_changes_the_run_only_from_its_day(tmp_path):
-    from hmcore.deck import prepare_run_deck
-    from hmcore.deck_info import DeckInfo
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.eclipse.deck_info import DeckInfo
     from hmcore.errors import CaseError
-    from hmcore.parameters import Parameter, ParameterSpace
-    from hmcore.responses import read_responses
-    from hmcore.simulator import OpmFlow
+    from hmcore.model.parameters import Parameter, ParameterSpace
+    from hmcore.simulation.responses import read_responses
+    from hmcore.simulation.simulator import OpmFlow
 
     info = DeckInfo.inspect(PUNQ_DECK)
     days = info.report_days
@@ -439,10 +439,10 @@ def test_a_dated_wpimult_waits_for_a_well_completed_later(tmp_path):
     pytest.importorskip("opm.io")
     import re
 
-    from hmcore.deck import prepare_run_deck
-    from hmcore.deck_info import DeckInfo
-    from hmcore.diagnosis.hidden import synthetic_deck_info
-    from hmcore.parameters import Parameter, ParameterSpace
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.eclipse.deck_info import DeckInfo
+    from hmcore.scenarios.hidden import synthetic_deck_info
+    from hmcore.model.parameters import Parameter, ParameterSpace
 
     base = synthetic_deck_info(0, tmp_path / "base").path.read_text()
     prod4 = "".join(re.findall(r"^ 'PROD4' 12 17 .*\n", base, flags=re.M))
@@ -468,11 +468,11 @@ def test_a_dated_wpimult_waits_for_a_well_completed_later(tmp_path):
 
 @pytest.mark.opm
 def test_init_imports_a_summary_file(tmp_path):
-    from hmcore.deck import prepare_run_deck
-    from hmcore.deck_info import DeckInfo
-    from hmcore.parameters import ParameterSpace
-    from hmcore.responses import read_responses
-    from hmcore.simulator import OpmFlow
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.eclipse.deck_info import DeckInfo
+    from hmcore.model.parameters import ParameterSpace
+    from hmcore.simulation.responses import read_responses
+    from hmcore.simulation.simulator import OpmFlow
 
     info = DeckInfo.inspect(PUNQ_DECK)
     run_deck = prepare_run_deck(PUNQ_DECK, {}, ParameterSpace.reference(), tmp_path / "run", info)
@@ -556,7 +556,7 @@ def test_a_broken_rsm_is_refused_with_every_line_named(tmp_path):
 
 
 def test_relperm_endpoint_shift_moves_the_critical_saturation():
-    from hmcore.deck import shift_endpoint
+    from hmcore.model.run_deck import shift_endpoint
 
     sw = np.array([0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 1.0])
     krw = np.array([0, 0, 0.01, 0.05, 0.1, 0.2, 0.35, 0.5, 1.0])
@@ -573,9 +573,9 @@ def test_relperm_endpoint_shift_moves_the_critical_saturation():
 
 
 def test_relperm_endpoint_parameter_writes_a_table_opm_reads(tmp_path):
-    from hmcore.deck import prepare_run_deck
-    from hmcore.deck_info import DeckInfo, _parse
-    from hmcore.parameters import Parameter, ParameterSpace
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.eclipse.deck_info import DeckInfo, _parse
+    from hmcore.model.parameters import Parameter, ParameterSpace
 
     info = DeckInfo.inspect(PUNQ_DECK)
     space = ParameterSpace(parameters=(Parameter(name="swcr_shift", kind="relperm",
@@ -593,9 +593,9 @@ def test_relperm_endpoint_parameter_writes_a_table_opm_reads(tmp_path):
 def test_wpimult_does_not_compound_on_a_well_completed_twice(tmp_path):
     """PRO-4's layer 4 moved to a second COMPDAT later in the schedule: every connection of
     the well gets the factor once (a whole-well WPIMULT after each COMPDAT would give 0.25)."""
-    from hmcore.deck import prepare_run_deck
-    from hmcore.deck_info import DeckInfo, _parse
-    from hmcore.parameters import Parameter, ParameterSpace
+    from hmcore.model.run_deck import prepare_run_deck
+    from hmcore.eclipse.deck_info import DeckInfo, _parse
+    from hmcore.model.parameters import Parameter, ParameterSpace
     from tests.conftest import copy_punq_deck
 
     deck = copy_punq_deck(tmp_path / "deck")
@@ -632,7 +632,7 @@ def _spe9_deck_with(tmp_path: Path, schedule: str) -> Path:
 
 @needs_spe9
 def test_history_reads_wildcards_defaults_welopen_and_the_end_of_history(tmp_path):
-    from hmcore.deck_info import DeckInfo
+    from hmcore.eclipse.deck_info import DeckInfo
 
     deck = _spe9_deck_with(tmp_path, """
 WCONHIST
@@ -685,7 +685,7 @@ TSTEP
 
 
 def test_time_zones_and_eclipse_months_in_dates():
-    from hmcore.observed import parse_dates
+    from hmcore.model.observed import parse_dates
 
     got = parse_dates(pd.Series(["2015-01-21T00:00:00Z", "2015-01-21T02:00:00+02:00",
                                  "1 JLY 2015", "21-jan-2015", "31/01/2015"]))
@@ -713,7 +713,7 @@ def test_rsm_time_column_honours_its_unit_and_a_file_without_the_leading_space(t
     """TIME in HOURS is read as days; a TIME unit that is no time is refused by line; a
     file written without Eclipse's leading space is read with the same column offset."""
     from hmcore.errors import CaseError
-    from hmcore.rsm import read_rsm
+    from hmcore.simulation.rsm import read_rsm
 
     rsm = tmp_path / "lab.RSM"
     rsm.write_text(RSM_TIME)

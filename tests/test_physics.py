@@ -11,9 +11,9 @@ import pandas as pd
 import pytest
 
 from conftest import requires_opm
-from hmcore.calibration import best_record
-from hmcore.case import PhysicsSettings
-from hmcore.physics import Check, check_physics, check_responses
+from hmcore.calibration.loop import best_record
+from hmcore.model.case import PhysicsSettings
+from hmcore.scoring.physics import Check, check_physics, check_responses
 
 DECK_VALUES = {"poro_mult": 1.0, "permx_mult": 1.0, "permy_mult": 1.0, "permz_mult": 1.0,
                "skin": 5.0}
@@ -58,7 +58,7 @@ def test_each_check_fires_inside_the_box_and_is_graded(punq_case, kind):
 
 def test_box_multipliers_act_on_their_box_only(punq_case):
     """A porosity multiplier on one layer changes the pore volume by that layer's share."""
-    from hmcore.parameters import Parameter, ParameterSpace
+    from hmcore.model.parameters import Parameter, ParameterSpace
 
     cells = punq_case.info.cells
     layer1 = cells.in_box((1, 19, 1, 28, 1, 1))
@@ -97,7 +97,7 @@ def test_a_real_run_that_breaks_the_physics_is_stored_penalised_and_never_best(p
                                                                                  tmp_path):
     """Real OPM runs on PUNQ-S3: the deck's values (valid), a proposal breaking the cell checks,
     and the deck's values under a minimum pressure above the producers' BHP floor (120 bar)."""
-    from hmcore.evaluation import Status, evaluate
+    from hmcore.scoring.evaluation import Status, evaluate
 
     strict = punq_case.__class__(**{**punq_case.__dict__, "physics": punq_case.physics.model_copy(
         update={"pressure_min": 150.0})})

@@ -20,11 +20,11 @@ from typer.testing import CliRunner
 
 from conftest import (PUNQ_OBS_FULL, PUNQ_OBS_STANDARD, PUNQ_WELLS, SIMULATION_SLOTS, requires_opm,
                       requires_punq)
-from hmcore.alignment import align
-from hmcore.evaluation import Status, evaluate, score_responses
-from hmcore.observed import read_observed
-from hmcore.responses import read_responses
-from hmcore.simulator import OpmFlow
+from hmcore.scoring.alignment import align
+from hmcore.scoring.evaluation import Status, evaluate, score_responses
+from hmcore.model.observed import read_observed
+from hmcore.simulation.responses import read_responses
+from hmcore.simulation.simulator import OpmFlow
 
 pytestmark = [requires_punq, requires_opm]
 
@@ -265,8 +265,8 @@ def test_gymnasium_check_env_passes_with_the_real_opm_evaluator(punq_case, tmp_p
     """The paper's environment, with the real simulator behind every step (PUNQ-S3)."""
     from gymnasium.utils.env_checker import check_env
 
-    from hmcore.env import HistoryMatchingEnv
-    from hmcore.evaluation import evaluate
+    from hmcore.calibration.methods.env import HistoryMatchingEnv
+    from hmcore.scoring.evaluation import evaluate
 
     runs = itertools.count()
 

@@ -53,7 +53,7 @@ def campaign(tmp_path_factory):
 @pytest.mark.opm
 @pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")
 def test_every_expected_figure_is_on_the_page_loaded_and_not_blank(campaign):
-    from hmcore.report_html import expected_figures
+    from hmcore.reporting.html import expected_figures
     from storage import ArtifactStore
     from tasks.results import report, report_inputs
 
@@ -112,7 +112,7 @@ def test_the_diagnosis_section_appears_when_the_campaign_has_a_diagnosis(campaig
 
 @pytest.mark.opm
 def test_the_forecast_reports_the_truths_cumulative_oil_beside_the_band(campaign):
-    from hmcore.curves import FIELD, value_at_end
+    from hmcore.simulation.curves import FIELD, value_at_end
     from storage import ArtifactStore
 
     curves = ArtifactStore(campaign).latest(CAMPAIGN, "curves")

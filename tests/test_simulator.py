@@ -19,12 +19,12 @@ import pytest
 from typer.testing import CliRunner
 
 from conftest import PUNQ_DECK, TRUTH_VALUES, copy_punq_deck
-from hmcore.deck import prepare_run_deck
+from hmcore.model.run_deck import prepare_run_deck
 from hmcore.errors import FailureKind, SimulationError
-from hmcore.evaluation import Status, evaluate, score_responses
-from hmcore.parameters import ParameterSpace
-from hmcore.responses import INJECTION, QUANTITIES, last_time, read_responses
-from hmcore.simulator import (CommandLineSimulator, OpmFlow, SimulationResult, make_simulator)
+from hmcore.scoring.evaluation import Status, evaluate, score_responses
+from hmcore.model.parameters import ParameterSpace
+from hmcore.simulation.responses import INJECTION, QUANTITIES, last_time, read_responses
+from hmcore.simulation.simulator import (CommandLineSimulator, OpmFlow, SimulationResult, make_simulator)
 
 # Tests that need the PUNQ-S3 data get it through fixtures that skip when it is absent;
 # tests marked opm are skipped when OPM is not installed (conftest).
@@ -129,7 +129,7 @@ def test_mpi_processes_per_run_through_the_command_template(truth_deck, truth_ru
 
 
 def test_mpi_processes_with_the_built_in_opm_flow_are_refused(tmp_path):
-    from hmcore.case import load_case
+    from hmcore.cases import load_case
     from hmcore.errors import CaseError
     from conftest import write_case_toml
 
@@ -346,12 +346,12 @@ def test_evaluate_run_that_stopped_early_is_a_fail(punq_case, tmp_path):
 
 def test_cli_evaluate_failed_run_exits_1_and_records_the_reason(punq_case, punq_case_toml,
                                                                  tmp_path, monkeypatch):
-    import hmcore.simulator
+    import hmcore.simulation.simulator
     from hmflow.cli import app
 
     fake = FakeSimulator(error=SimulationError("timeout", "no result after 1 s", None,
                                                "still stepping"))
-    monkeypatch.setattr(hmcore.simulator, "make_simulator", lambda *a, **k: fake)
+    monkeypatch.setattr(hmcore.simulation.simulator, "make_simulator", lambda *a, **k: fake)
     out = tmp_path / "out"
     result = CliRunner().invoke(app, ["evaluate", "--case", str(punq_case_toml), "--set",
                                       "skin=5", "--out", str(out)], env={"COLUMNS": "400"})
@@ -366,11 +366,11 @@ def test_cli_evaluate_failed_run_exits_1_and_records_the_reason(punq_case, punq_
 
 def test_cli_evaluate_refuses_a_non_empty_out_dir(punq_case, punq_case_toml, tmp_path,
                                                   monkeypatch):
-    import hmcore.simulator
+    import hmcore.simulation.simulator
     from hmflow.cli import app
 
     fake = FakeSimulator(error=SimulationError("crash", "must not run"))
-    monkeypatch.setattr(hmcore.simulator, "make_simulator", lambda *a, **k: fake)
+    monkeypatch.setattr(hmcore.simulation.simulator, "make_simulator", lambda *a, **k: fake)
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("precious")

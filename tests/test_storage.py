@@ -529,8 +529,8 @@ def test_a_case_stored_by_older_code_is_the_same_case_and_a_changed_setting_is_n
     import json
 
     from flows.campaign import check_campaign_settings
-    from hmcore.case import load_case
-    from hmcore.synthetic import ensure_synthetic_case
+    from hmcore.cases import load_case
+    from hmcore.scenarios.synthetic import ensure_synthetic_case
     from storage import ArtifactStore
     from tasks.case import prepare_deck
 

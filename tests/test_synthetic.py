@@ -16,9 +16,9 @@ import pandas as pd
 import pytest
 from conftest import SIMULATION_SLOTS, requires_opm
 
-from hmcore import synthetic as syn
-from hmcore.parameters import Parameter, ParameterSpace
-from hmcore.simulator import OpmFlow, SimulationResult
+from hmcore.scenarios import synthetic as syn
+from hmcore.model.parameters import Parameter, ParameterSpace
+from hmcore.simulation.simulator import OpmFlow, SimulationResult
 
 pytestmark = [requires_opm, pytest.mark.opm]
 
@@ -232,7 +232,7 @@ def test_observed_noise_matches_sigma(observed: pd.DataFrame, truth: pd.DataFram
 
 
 def test_observed_loads_as_a_case(case_dir: Path) -> None:
-    from hmcore.case import load_case
+    from hmcore.cases import load_case
 
     case = load_case(case_dir / syn.CASE_NAME)
     assert case.info.producers == [w.name for w in syn.WELLS]
@@ -242,7 +242,7 @@ def test_observed_loads_as_a_case(case_dir: Path) -> None:
 @pytest.fixture(scope="module")
 def rerun(case_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> SimulationResult:
     """The base deck run with the truth values applied by hmflow's deck editor."""
-    from hmcore.deck import prepare_run_deck
+    from hmcore.model.run_deck import prepare_run_deck
 
     tmp = tmp_path_factory.mktemp("rerun")
     deck = prepare_run_deck(case_dir / syn.DECK_NAME, dict(syn.SYNTHETIC_TRUTH),

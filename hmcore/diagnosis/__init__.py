@@ -11,7 +11,7 @@ One job per module: :mod:`~hmcore.diagnosis.settings` (the knobs, ``--kinds``),
 :mod:`~hmcore.diagnosis.workflow` (one round's steps, the budget), :mod:`~hmcore.diagnosis.forward`
 (a second cause, with the first in the model), :mod:`~hmcore.diagnosis.origins` (a later fitted
 window), :mod:`~hmcore.diagnosis.rounds` (all of them, in order), :mod:`~hmcore.diagnosis.report`
-and :mod:`~hmcore.diagnosis.hidden` (hidden-effect test cases).
+and :mod:`~hmcore.scenarios.hidden` (hidden-effect test cases).
 
 Free of Prefect: the simulator is reached only through an injected ``evaluate_batch``.
 """
@@ -19,7 +19,9 @@ Free of Prefect: the simulator is reached only through an injected ``evaluate_ba
 from hmcore.diagnosis.attribution import Score, projector_basis, score_test
 from hmcore.diagnosis.extensions import KINDS, Candidate, build_candidates, extended_space
 from hmcore.diagnosis.recalibrate import Coordinates, LevenbergMarquardt, LMSettings, run_lockstep
-from hmcore.diagnosis.residuals import ObservationSet, analyse_residuals, estimate_noise
+from hmcore.scoring.observations import ObservationSet
+from hmcore.diagnosis.residuals import analyse_residuals
+from hmcore.scoring.noise import estimate_noise
 from hmcore.diagnosis.settings import DiagnosisSettings, parse_kinds
 from hmcore.diagnosis.workflow import Diagnosis, budget_problem, local_evaluator, minimum_runs
 from hmcore.diagnosis.rounds import diagnose, diagnose_all

@@ -1,7 +1,7 @@
 """Attribution: which candidate extension explains the structured residual?
 
 At the calibrated point the whitened residual vector is ``r`` (see
-:class:`hmcore.diagnosis.residuals.ObservationSet`). One finite-difference run per candidate
+:class:`hmcore.scoring.observations.ObservationSet`). One finite-difference run per candidate
 gives its sensitivity ``j = (r(probe) - r) / du``; the global parameters' sensitivities
 ``J_g`` come from the calibration. With the globals re-fitted jointly (their sensitivities
 projected out, ``P = I - Q Q^T`` with ``Q`` an orthonormal basis of ``J_g``), the score test is

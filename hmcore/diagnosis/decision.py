@@ -17,7 +17,7 @@ import pandas as pd
 from hmcore.diagnosis.attribution import Score
 from hmcore.diagnosis.extensions import Candidate
 from hmcore.diagnosis.settings import DiagnosisSettings
-from hmcore.results import natural_key
+from hmcore.ordering import natural_key
 
 
 # ----------------------------------------------------------------------------- held-back rule
@@ -454,8 +454,8 @@ def _verdict(selected: str | None, confirmed_ok: list[str], confirmed: dict[str,
 def per_well_heldout(case: Any, responses: pd.DataFrame | None) -> dict:
     """Held-back misfit E per well and response of ``responses`` (empty when the case holds
     nothing back or the run failed)."""
-    from hmcore.alignment import align
-    from hmcore.misfit import category_ranges, misfit
+    from hmcore.scoring.alignment import align
+    from hmcore.scoring.misfit import category_ranges, misfit
 
     held = case.heldout_observed
     if held.empty or responses is None:

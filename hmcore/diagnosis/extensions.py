@@ -2,7 +2,7 @@
 
 A :class:`Candidate` is one physical hypothesis ("PROD3's completion is more damaged than the
 others", "a sealing fault between the west and east wells") represented by one new
-:class:`~hmcore.parameters.Parameter` of an existing kind, with
+:class:`~hmcore.model.parameters.Parameter` of an existing kind, with
 
 * ``kind`` (one of :data:`KINDS`), ``wells`` and ``layers`` (1-based k) it concerns;
 * ``description`` in plain words and :meth:`Candidate.machine` (the parameter as data);
@@ -42,12 +42,12 @@ from pathlib import Path
 
 import numpy as np
 
-from hmcore.deck_info import DeckInfo
+from hmcore.eclipse.deck_info import DeckInfo
 from hmcore.diagnosis.recalibrate import Coordinates
-from hmcore.eclipse_lexer import expand_repeats, include_target, records, split_blocks
-from hmcore.includes import resolve_include
-from hmcore.parameters import Parameter, ParameterSpace
-from hmcore.results import natural_key
+from hmcore.eclipse.lexer import expand_repeats, include_target, records, split_blocks
+from hmcore.eclipse.includes import resolve_include
+from hmcore.model.parameters import Parameter, ParameterSpace
+from hmcore.ordering import natural_key
 
 KINDS = ("well_skin", "regional_permeability", "layer_permeability", "vertical_permeability",
          "aquifer_strength", "fault_transmissibility", "relative_permeability",
@@ -445,8 +445,8 @@ def critical_room(info: DeckInfo, table: str) -> float:
     deck's tables of that keyword (one per saturation region). 0 when a table starts at its
     critical saturation (a shift down then changes nothing); 0.5 when the tables cannot be
     read (defaulted items: the deck writer refuses to shift them anyway)."""
-    from hmcore.deck import critical_saturation
-    from hmcore.tables import width
+    from hmcore.model.run_deck import critical_saturation
+    from hmcore.eclipse.tables import width
 
     rooms = []
     for rec in deck_blocks(info).get(table, []):

@@ -20,7 +20,7 @@ import dataclasses
 
 import numpy as np
 
-from hmcore.case import Case
+from hmcore.model.case import Case
 from hmcore.diagnosis.settings import DiagnosisSettings
 
 

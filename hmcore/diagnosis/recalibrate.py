@@ -23,7 +23,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from hmcore.parameters import Parameter
+from hmcore.model.parameters import Parameter
 
 LOG_KINDS = ("multiply", "item_multiply", "relperm", "wpimult", "table_multiply")
 

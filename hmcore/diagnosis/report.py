@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from hmcore.diagnosis.decision import statistic_text
-from hmcore.diagnosis.residuals import ObservationSet
+from hmcore.scoring.observations import ObservationSet
 
 PLOTTED = ("WOPR", "WWPR", "WGPR", "WBHP", "WGOR", "WWCT")
 LABELS = {"WOPR": "oil rate", "WWPR": "water rate", "WGPR": "gas rate", "WBHP": "BHP",

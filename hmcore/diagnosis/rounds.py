@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from hmcore.case import Case
+from hmcore.model.case import Case
 from hmcore.diagnosis import forward, origins
 from hmcore.diagnosis.settings import DiagnosisSettings
 from hmcore.diagnosis.workflow import Diagnosis, EvaluateBatch, Run, budget_problem

@@ -28,7 +28,7 @@ One round of one fitted window; :mod:`hmcore.diagnosis.rounds` runs the rounds a
 (:func:`hmcore.diagnosis.rounds.diagnose`).
 
 The simulator is never run here: ``evaluate_batch(case, values_list, step) -> results`` is
-injected (results are :class:`hmcore.evaluation.Evaluation`-like: ``status``, ``E``,
+injected (results are :class:`hmcore.scoring.evaluation.Evaluation`-like: ``status``, ``E``,
 ``E_heldout``, ``responses``); :func:`local_evaluator` is a plain thread-pool one. Every call
 counts against ``DiagnosisSettings.budget``; a budget below :func:`minimum_runs` is refused
 before the first (:func:`budget_problem`).
@@ -50,7 +50,7 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
-from hmcore.case import Case
+from hmcore.model.case import Case
 from hmcore.diagnosis import dating, decision, refit, screening
 from hmcore.diagnosis.attribution import Score, projector_basis
 from hmcore.diagnosis.extensions import (Candidate, base_values, build_candidates,
@@ -58,11 +58,12 @@ from hmcore.diagnosis.extensions import (Candidate, base_values, build_candidate
                                          extended_space, open_end, shifted_regions)
 from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings, Point,
                                           run_lockstep)
-from hmcore.diagnosis.residuals import ObservationSet, analyse_residuals
+from hmcore.scoring.observations import ObservationSet
+from hmcore.diagnosis.residuals import analyse_residuals
 from hmcore.diagnosis.settings import DiagnosisSettings, with_lines
 from hmcore.errors import Problem
-from hmcore.evaluation import score_responses
-from hmcore.results import natural_key
+from hmcore.scoring.evaluation import score_responses
+from hmcore.ordering import natural_key
 
 EvaluateBatch = Callable[[Case, list[dict[str, float]], str], list[Any]]
 REGIONS_PER_WELL = 2
@@ -119,11 +120,11 @@ def budget_problem(case: Case, settings: DiagnosisSettings, given: bool,
 
 # ============================================================================= evaluators
 def local_evaluator(run_root: Path, workers: int = 2, simulator=None) -> EvaluateBatch:
-    """``evaluate_batch`` running :func:`hmcore.evaluation.evaluate` on a thread pool.
+    """``evaluate_batch`` running :func:`hmcore.scoring.evaluation.evaluate` on a thread pool.
 
     Run directories are ``run_root/<step>-<n>`` (never reused); at most ``workers`` at once.
     """
-    from hmcore.evaluation import evaluate
+    from hmcore.scoring.evaluation import evaluate
 
     run_root = Path(run_root)
     counter = itertools.count()

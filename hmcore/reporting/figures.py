@@ -1,0 +1,261 @@
+"""The report's figures as PNG bytes (matplotlib, object API: no pyplot state, thread-safe).
+
+Each function takes stored tables (no simulator, no file reading) and returns one PNG:
+per-well curves (observed with its noise band, prior centre, deck or truth, best case; the
+held-back period shaded), best-so-far E against calls, the well x response C_match heatmap,
+parameter traces and the best values against their bounds, failed and penalised calls by kind,
+and the forecast fan. Units come from the summary file (the deck's own unit system).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+
+# response quantity -> (title, observed response category in ObservationSet rows)
+PANELS = (("WOPR", "oil rate"), ("WWPR", "water rate"), ("WGPR", "gas rate"),
+          ("WBHP", "bottom-hole pressure"), ("WGOR", "gas-oil ratio"), ("WWCT", "water cut"))
+INJECTOR_PANELS = (("WWIR", "water injection rate"), ("WGIR", "gas injection rate"),
+                   ("WBHP", "bottom-hole pressure"))
+STYLE = {"best": dict(color="#1f5fbf", lw=1.8, label="best case"),
+         "centre": dict(color="#888888", lw=1.2, ls="--", label="prior centre"),
+         "truth": dict(color="#2e8b57", lw=1.1, label="truth"),
+         "deck": dict(color="#2e8b57", lw=1.2, ls=":", label="deck's own values")}
+DPI = 90
+
+
+def png(fig: Figure) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def _unit(curves: pd.DataFrame, quantity: str) -> str:
+    u = curves.loc[curves.quantity == quantity, "unit"]
+    u = u[u.astype(str).str.len() > 0] if len(u) else u
+    if quantity == "WWCT":
+        return "fraction"
+    return str(u.iloc[0]).lower() if len(u) else ""
+
+
+def well_curves(well: str, observed: pd.DataFrame, curves: pd.DataFrame,
+                history_end: float | None) -> bytes:
+    """Six panels for one well (an injector's: its injection rates and BHP). ``observed``:
+    ObservationSet rows of this well (``quantity, days, observed, sigma, period``);
+    ``curves``: the curves artifact rows of this well."""
+    end = float(curves.days.max()) if len(curves) else None
+    panels = _panels(observed, curves)
+    rows = 2 if len(panels) > 3 else 1
+    fig = Figure(figsize=(13, 6.4 if rows == 2 else 3.6))
+    axes = fig.subplots(rows, 3, sharex=True, squeeze=False)
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
+    for ax, (q, title) in zip(axes.flat, panels):
+        obs = observed[observed.quantity == q].sort_values("days")
+        if history_end is not None and end is not None:
+            last_obs = float(observed.days.max()) if len(observed) else history_end
+            if last_obs > history_end:
+                ax.axvspan(history_end, min(last_obs, end), color="#f3e9d2", zorder=0,
+                           label="held back (not fitted)")
+            if end > max(last_obs, history_end):
+                ax.axvspan(max(last_obs, history_end), end, color="#e8eef7", zorder=0,
+                           label="forecast (no data)")
+        if len(obs):
+            lo, hi = _band(q, obs.observed.to_numpy(float), obs.sigma.to_numpy(float))
+            ax.fill_between(obs.days, lo, hi, color="#d62728", alpha=0.15, lw=0,
+                            label="observed \u00b1 1 sigma")
+            ax.plot(obs.days, obs.observed, "o", ms=3, color="#d62728", label="observed")
+        for member in ("centre", "deck", "truth", "best"):
+            sel = curves[(curves.member == member) & (curves.quantity == q)].sort_values("days")
+            if len(sel):
+                ax.plot(sel.days, sel.value, **STYLE[member])
+        unit = _unit(curves, q)
+        ax.set_title(f"{well}: {title}", fontsize=10)
+        ax.set_ylabel(unit)
+        if q == "WWCT":
+            ax.set_ylim(-0.02, 1.02)
+        else:
+            ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("days since start")
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    for ax in axes.flat[1:]:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), frameon=False,
+               bbox_to_anchor=(0.5, -0.04 if rows == 2 else -0.12))
+    return png(fig)
+
+
+def _panels(observed: pd.DataFrame, curves: pd.DataFrame) -> tuple[tuple[str, str], ...]:
+    """A producer's six panels, or an injector's: the phases it injects and its BHP."""
+    def shows(q: str) -> bool:
+        sel = curves[curves.quantity == q]
+        return bool((observed.quantity == q).any() or (len(sel) and (sel.value > 0).any()))
+
+    injected = tuple(p for p in INJECTOR_PANELS[:2] if shows(p[0]))
+    return injected + INJECTOR_PANELS[2:] if injected else PANELS
+
+
+def _band(quantity: str, y: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """y +/- sigma, never below 0 (rates, pressures, ratios) nor above 1 (water cut)."""
+    s = np.where(np.isfinite(sigma), sigma, 0.0)
+    lo, hi = np.maximum(y - s, 0.0), y + s
+    if quantity == "WWCT":
+        hi = np.minimum(hi, 1.0)
+    return lo, hi
+
+
+def best_so_far(table: pd.DataFrame, floor: float | None, centre: float | None) -> bytes:
+    """Every call's E (valid, penalised, failed marked apart) and the best valid E so far."""
+    fig = Figure(figsize=(8, 4))
+    ax = fig.subplots()
+    calls = table["index"].to_numpy(int) + 1
+    ok = table.status == "COMPLETE"
+    ax.semilogy(calls[ok], table.E[ok], ".", color="#1f5fbf", alpha=0.5, label="valid call")
+    bad = table.status == "INVALID"
+    if bad.any():
+        ax.semilogy(calls[bad], table.E[bad].where(table.E[bad] > 0), "x", color="#e69f00",
+                    alpha=0.6, label="penalised (never best)")
+    ax.step(calls, table.best_E_so_far, where="post", color="#1f5fbf", lw=2,
+            label="best so far")
+    for value, label, style in ((floor, "truth / deck E", ":"), (centre, "prior-centre E", "--")):
+        if value is not None and math.isfinite(value) and value > 0:
+            ax.axhline(value, color="#444444", ls=style, lw=1, label=label)
+    fails = table.status == "FAIL"
+    for c in calls[fails]:
+        ax.axvline(c, color="#d62728", alpha=0.25, lw=1)
+    ax.set_xlabel("simulator call")
+    ax.set_ylabel("misfit E (log scale)")
+    ax.set_title("Best-so-far misfit against simulator calls"
+                 + (" (red lines: failed calls)" if fails.any() else ""), fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    return png(fig)
+
+
+def cmatch_heatmap(wells: pd.DataFrame) -> bytes:
+    """``wells``: :func:`hmcore.scoring.metrics.well_table` (well x response C_match, %)."""
+    cats = [c for c in wells.columns if c != "well"]
+    data = wells[cats].to_numpy(float)
+    fig = Figure(figsize=(1.3 * len(cats) + 2, 0.45 * len(wells) + 1.6))
+    ax = fig.subplots()
+    im = ax.imshow(np.ma.masked_invalid(data), cmap="RdYlGn", vmin=50, vmax=100, aspect="auto")
+    ax.set_xticks(range(len(cats)), cats)
+    ax.set_yticks(range(len(wells)), wells.well)
+    for i in range(data.shape[0]):
+        for j in range(data.shape[1]):
+            v = data[i, j]
+            ax.text(j, i, "n/a" if not math.isfinite(v) else f"{v:.1f}", ha="center",
+                    va="center", fontsize=8)
+    fig.colorbar(im, ax=ax, label="C_match (%) = 100 / (1 + NMSE)")
+    ax.set_title("Best case: C_match per well and response", fontsize=10)
+    return png(fig)
+
+
+def parameter_traces(table: pd.DataFrame, bounds: dict[str, tuple[float, float]],
+                     best: dict[str, float] | None) -> bytes:
+    """Each parameter's value at every call (valid, penalised, failed) within its bounds, and
+    the best case's value."""
+    names = list(bounds)
+    fig = Figure(figsize=(10, 1.9 * len(names) + 0.6))
+    axes = np.atleast_1d(fig.subplots(len(names), 1, sharex=True))
+    calls = table["index"].to_numpy(int) + 1
+    colours = {"COMPLETE": "#1f5fbf", "INVALID": "#e69f00", "FAIL": "#d62728"}
+    for ax, name in zip(axes, names):
+        col = f"p_{name}"
+        for status, colour in colours.items():
+            sel = (table.status == status).to_numpy()
+            if sel.any() and col in table:
+                ax.plot(calls[sel], table[col][sel], ".", color=colour, ms=4,
+                        label={"COMPLETE": "valid", "INVALID": "penalised",
+                               "FAIL": "failed"}[status])
+        lo, hi = bounds[name]
+        ax.axhline(lo, color="#444444", lw=0.8)
+        ax.axhline(hi, color="#444444", lw=0.8)
+        if best and name in best:
+            ax.axhline(best[name], color="#2e8b57", lw=1.5, ls="--", label="best")
+        ax.set_ylabel(name, fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, ncol=4, loc="upper right")
+    axes[-1].set_xlabel("simulator call")
+    axes[0].set_title("Parameter values proposed, call by call (lines: bounds)", fontsize=10)
+    return png(fig)
+
+
+def best_against_bounds(bounds: dict[str, tuple[float, float]], best: dict[str, float],
+                        truth: dict[str, float] | None) -> bytes:
+    """Where the best value sits in each parameter's range (0 = low bound, 1 = high)."""
+    names = list(bounds)
+    fig = Figure(figsize=(8, 0.5 * len(names) + 1.2))
+    ax = fig.subplots()
+    for i, name in enumerate(names):
+        lo, hi = bounds[name]
+        ax.plot([0, 1], [i, i], color="#cccccc", lw=6, solid_capstyle="butt")
+        x = (best[name] - lo) / (hi - lo)
+        ax.plot(x, i, "o", color="#1f5fbf", ms=9, label="best" if i == 0 else None)
+        ax.annotate(f"{best[name]:.4g}", (x, i), textcoords="offset points", xytext=(0, 8),
+                    ha="center", fontsize=8)
+        if truth and name in truth:
+            ax.plot((truth[name] - lo) / (hi - lo), i, "D", color="#2e8b57", ms=7,
+                    mfc="none", label="truth" if i == 0 else None)
+        ax.text(-0.02, i, f"{lo:g}", ha="right", va="center", fontsize=8)
+        ax.text(1.02, i, f"{hi:g}", ha="left", va="center", fontsize=8)
+    ax.set_yticks(range(len(names)), names)
+    ax.set_xlim(-0.12, 1.12)
+    ax.set_xticks([])
+    ax.invert_yaxis()
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title("Best parameters within their bounds", fontsize=10)
+    return png(fig)
+
+
+def failures(kinds: dict[str, int]) -> bytes:
+    """Calls failed (by reason) and penalised (by physics check)."""
+    fig = Figure(figsize=(8, 0.4 * max(len(kinds), 1) + 1.2))
+    ax = fig.subplots()
+    names = list(kinds)
+    ax.barh(range(len(names)), [kinds[n] for n in names],
+            color=["#d62728" if n.startswith("failed") else "#e69f00" for n in names])
+    ax.set_yticks(range(len(names)), names)
+    ax.invert_yaxis()
+    ax.set_xlabel("calls")
+    ax.set_title("Failed calls by reason, penalised calls by physics check", fontsize=10)
+    return png(fig)
+
+
+def forecast_fan(curves: pd.DataFrame, quantities: list[tuple[str, str]], history_end: float | None
+                 ) -> bytes:
+    """Field cumulatives of the forecast members: P90-P10 band, P50, members, truth, best."""
+    fig = Figure(figsize=(5 * len(quantities), 3.8))
+    axes = np.atleast_1d(fig.subplots(1, len(quantities)))
+    for ax, (q, title) in zip(axes, quantities):
+        sel = curves[(curves.well == "FIELD") & (curves.quantity == q)]
+        members = sel[sel.member.str.startswith("call-")]
+        if len(members):
+            wide = members.pivot_table(index="days", columns="member", values="value")
+            for m in wide.columns:
+                ax.plot(wide.index, wide[m], color="#1f5fbf", lw=0.5, alpha=0.35)
+            qs = np.nanquantile(wide.to_numpy(float), [0.1, 0.5, 0.9], axis=1)
+            ax.fill_between(wide.index, qs[0], qs[2], color="#1f5fbf", alpha=0.2,
+                            label="P90-P10 of members")
+            ax.plot(wide.index, qs[1], color="#1f5fbf", lw=2, label="P50")
+        for member in ("truth", "centre"):
+            ref = sel[sel.member == member].sort_values("days")
+            if len(ref):
+                ax.plot(ref.days, ref.value, **STYLE[member])
+        if history_end is not None:
+            ax.axvline(history_end, color="#444444", lw=1, ls="-.", label="end of fitted history")
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("days since start")
+        ax.set_ylabel(_unit(sel, q))
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    return png(fig)

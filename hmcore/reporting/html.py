@@ -1,0 +1,279 @@
+"""``report.html``: one self-contained page (figures embedded as PNG data) and the same figures
+as PNG files, from stored tables only (no simulator, no run directory).
+
+The page is a jinja2 template (``hmcore/templates/report.html.j2``); the figures are
+:mod:`hmcore.reporting.figures`'. Each figure is an ``<img data-figure=NAME>`` so a browser test can
+check every expected one is there and loaded.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as dt
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from jinja2 import Environment, FileSystemLoader, select_autoescape
+from markupsafe import Markup
+
+from hmcore.reporting import figures as figs
+from hmcore.scoring.metrics import well_table
+from hmcore.ordering import natural_key
+
+TEMPLATES = Path(__file__).parent / "templates"
+FAN = [("FOPT", "field cumulative oil"), ("FWPT", "field cumulative water"),
+       ("FGPT", "field cumulative gas")]
+
+
+@dataclass(frozen=True)
+class ReportInputs:
+    """Everything the page is drawn from (the report task loads it from the store)."""
+
+    campaign: str
+    case_doc: dict
+    agent: str
+    table: pd.DataFrame                 # evaluations.parquet
+    best: dict | None                   # the best case's metrics.json
+    observed: pd.DataFrame | None       # ObservationSet rows (with sigma and period)
+    history_end: float | None
+    curves: pd.DataFrame | None         # curves.parquet
+    forecast: pd.DataFrame | None       # forecast.parquet
+    forecast_doc: dict | None           # forecast.json
+    references: dict = field(default_factory=dict)  # "floor"/"centre" -> E
+    truth: dict | None = None
+    diagnosis_markdown: str | None = None
+    diagnosis_figures: dict = field(default_factory=dict)  # name -> PNG bytes
+    code: str = ""
+
+
+def expected_figures(inputs: ReportInputs) -> list[str]:
+    """The figure names the page holds for these inputs (what a test checks is on the page)."""
+    return list(_figures(inputs, draw=False))
+
+
+def render(inputs: ReportInputs) -> tuple[str, dict[str, bytes]]:
+    """(HTML, {figure file name: PNG bytes})."""
+    pngs = _figures(inputs, draw=True)
+    env = Environment(loader=FileSystemLoader(TEMPLATES), autoescape=select_autoescape(["j2"]))
+    template = env.get_template("report.html.j2")
+
+    def figure(name: str) -> Markup:
+        data = base64.b64encode(pngs[name]).decode("ascii")
+        caption = CAPTIONS.get(name.removesuffix(".png").split("__")[0], name)
+        return Markup('<figure><img data-figure="{0}" alt="{1}" src="data:image/png;base64,'
+                      '{2}"><figcaption>{1} ({0})</figcaption></figure>'
+                      ).format(name, caption, Markup(data))
+
+    names = list(pngs)
+    t = inputs.table
+    counts = t.status.value_counts().to_dict() if len(t) else {}
+    html = template.render(
+        figure=figure, campaign=inputs.campaign, case_name=inputs.case_doc["name"],
+        case_source=inputs.case_doc.get("source", ""), agent=inputs.agent, calls=len(t),
+        status_text=", ".join(f"{v} {k.lower()}" for k, v in sorted(counts.items())),
+        built=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        code=inputs.code, best=_best_card(inputs), references=_reference_cards(inputs),
+        summary_figures=[n for n in names if n.startswith("cmatch")],
+        well_figures=[n for n in names if n.startswith("well__")],
+        convergence_figures=[n for n in names if n.startswith(("best_so_far", "failures"))],
+        parameter_figures=[n for n in names if n.startswith("parameter")],
+        forecast_figures=[n for n in names if n.startswith("forecast")],
+        failure_counts=_failure_counts(t), best_params=_best_params(inputs),
+        truth=inputs.truth, floor_label=_floor_label(inputs), forecast=_forecast(inputs),
+        paper_tables=_paper_tables(inputs), diagnosis=_diagnosis(inputs, names))
+    return html, pngs
+
+
+CAPTIONS = {"well": "observed against simulated, six responses",
+            "best_so_far": "best-so-far misfit against simulator calls",
+            "cmatch_heatmap": "C_match per well and response (best case)",
+            "parameter_traces": "parameter values call by call",
+            "parameters_vs_bounds": "best parameters within their bounds",
+            "failures": "failed and penalised calls",
+            "forecast_fan": "forecast of field cumulatives",
+            "diagnosis": "diagnosis plot"}
+
+
+def _figures(inputs: ReportInputs, draw: bool) -> dict[str, bytes]:
+    out: dict[str, bytes] = {}
+
+    def add(name: str, make) -> None:
+        out[f"{name}.png"] = make() if draw else b""
+
+    t, best = inputs.table, inputs.best
+    bounds = {p["name"]: (float(p["low"]), float(p["high"]))
+              for p in inputs.case_doc["parameters"]}
+    if best is not None and best.get("metrics", {}).get("wells"):
+        add("cmatch_heatmap", lambda: figs.cmatch_heatmap(well_table(best["metrics"])))
+    curves = inputs.curves
+    if curves is not None and len(curves):
+        for well in _wells(inputs):
+            obs = (inputs.observed[inputs.observed.well == well] if inputs.observed is not None
+                   else pd.DataFrame(columns=["quantity", "days", "observed", "sigma"]))
+            add(f"well__{_safe(well)}", lambda w=well, o=obs: figs.well_curves(
+                w, _plottable_observed(o), _plottable_curves(curves[curves.well == w]),
+                inputs.history_end))
+    if len(t):
+        add("best_so_far", lambda: figs.best_so_far(t, inputs.references.get("floor"),
+                                                     inputs.references.get("centre")))
+        kinds = _failure_counts(t)
+        if kinds:
+            add("failures", lambda: figs.failures(kinds))
+        add("parameter_traces", lambda: figs.parameter_traces(
+            t, bounds, best["params"] if best else None))
+    if best is not None:
+        add("parameters_vs_bounds", lambda: figs.best_against_bounds(bounds, best["params"],
+                                                                     inputs.truth))
+    if inputs.forecast is not None and len(inputs.forecast) and curves is not None:
+        add("forecast_fan", lambda: figs.forecast_fan(curves, FAN, inputs.history_end))
+    for name, data in inputs.diagnosis_figures.items():
+        out[f"diagnosis__{name}"] = data
+    return out
+
+
+def _wells(inputs: ReportInputs) -> list[str]:
+    wells = [w for w in inputs.case_doc.get("wells", []) if w in set(inputs.curves.well)]
+    return sorted(wells, key=natural_key)
+
+
+
+def _safe(name: str) -> str:
+    return "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
+
+
+def _plottable_observed(obs: pd.DataFrame) -> pd.DataFrame:
+    """GOR and water cut only while the well flows (they are undefined when it is shut)."""
+    if "flowing" in obs:
+        return obs[obs.flowing.astype(bool) | ~obs.quantity.isin(["WGOR", "WWCT"])]
+    return obs
+
+
+def _plottable_curves(curves: pd.DataFrame) -> pd.DataFrame:
+    """Simulated GOR and water cut where the well produces oil, BHP where it is a pressure (a
+    summary reports 0 before the well exists)."""
+    out = curves.copy()
+    oil = out[out.quantity == "WOPR"][["member", "days", "value"]].rename(
+        columns={"value": "oil"})
+    out = out.merge(oil, on=["member", "days"], how="left")
+    ratio = out.quantity.isin(["WGOR", "WWCT"]) & ~(out.oil > 0)
+    out.loc[ratio | ((out.quantity == "WBHP") & ~(out.value > 0)), "value"] = np.nan
+    return out.drop(columns="oil")
+
+
+def _fmt(v, digits: int = 4) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    v = float(v)
+    return f"{v:.{digits}g}" if abs(v) < 1e-3 or abs(v) >= 1e5 else f"{v:.{digits}f}"
+
+
+def _volume(v) -> str:
+    """A cumulative volume as engineers read one: 1,685,000 (4 significant digits)."""
+    if v is None or not math.isfinite(float(v)):
+        return ""
+    v = float(v)
+    if abs(v) < 1000:
+        return f"{v:.4g}"
+    digits = int(math.floor(math.log10(abs(v)))) + 1
+    return f"{round(v, 4 - digits):,.0f}"
+
+
+def _best_card(inputs: ReportInputs) -> dict | None:
+    b = inputs.best
+    if b is None:
+        return None
+    macro = b.get("metrics", {}).get("macro", {})
+    return {"E": f"{b['E']:.6g}", "call": b["index"] + 1, "nmse": _fmt(macro.get("nmse")),
+            "r2": _fmt(macro.get("r2")), "cmatch": _fmt(macro.get("cmatch"), 2)}
+
+
+def _floor_label(inputs: ReportInputs) -> str | None:
+    if inputs.curves is None:
+        return None
+    members = set(inputs.curves.member)
+    return "truth" if "truth" in members else "deck's own values" if "deck" in members else None
+
+
+def _reference_cards(inputs: ReportInputs) -> list[dict]:
+    label = {"floor": ("E of the truth" if inputs.truth else "E of the deck's own values"),
+             "centre": "E of the prior centre"}
+    return [{"E": f"{v:.6g}", "label": label[k]} for k, v in inputs.references.items()
+            if v is not None and math.isfinite(v)]
+
+
+def _failure_counts(t: pd.DataFrame) -> dict[str, int]:
+    kinds: dict[str, int] = {}
+    if not len(t):
+        return kinds
+    column = "failure" if "failure" in t else "reason"
+    for kind in t.loc[t.status == "FAIL", column].fillna("unknown"):
+        key = f"failed: {str(kind).split(':')[0] or 'unknown'}"
+        kinds[key] = kinds.get(key, 0) + 1
+    if "violation_kinds" in t:
+        for cell in t.loc[t.status == "INVALID", "violation_kinds"].fillna(""):
+            for kind in sorted(set(filter(None, str(cell).split(",")))) or ["unspecified"]:
+                key = f"penalised: {kind}"
+                kinds[key] = kinds.get(key, 0) + 1
+    return kinds
+
+
+def _best_params(inputs: ReportInputs) -> list[dict]:
+    if inputs.best is None:
+        return []
+    rows = []
+    for p in inputs.case_doc["parameters"]:
+        name = p["name"]
+        rows.append({"name": name, "value": _fmt(inputs.best["params"].get(name)),
+                     "low": _fmt(p["low"]), "high": _fmt(p["high"]),
+                     "truth": _fmt((inputs.truth or {}).get(name))})
+    return rows
+
+
+def _forecast(inputs: ReportInputs) -> dict | None:
+    f, doc = inputs.forecast, inputs.forecast_doc
+    if f is None or not len(f) or doc is None:
+        return None
+    show = f[["label", "members", "P90", "P50", "P10", "truth", "truth_inside"]].copy()
+    unit = {}
+    if inputs.curves is not None:
+        unit = (inputs.curves.drop_duplicates("quantity").set_index("quantity")["unit"]
+                .str.lower().to_dict())
+    show.insert(1, "unit", [unit.get(q, "") for q in f.quantity])
+    for c in ("P90", "P50", "P10", "truth"):
+        show[c] = [_volume(v) for v in show[c]]
+    show["truth_inside"] = [{True: "yes", False: "NO"}.get(v, "") for v in show.truth_inside]
+    if not doc.get("truth_run", doc.get("truth_known")):
+        show = show.drop(columns=["truth", "truth_inside"])
+    else:
+        show = show.rename(columns={"truth_inside": "truth in [P90, P10]"})
+    calls = doc.get("member_calls", [])
+    return {"caveat": doc["caveat"], "members": len(calls),
+            "calls": ", ".join(str(c) for c in calls),
+            "end_days": f"{float(f.end_days.max()):g}",
+            "table": show.to_html(index=False, border=0, classes="forecast",
+                                  table_id="forecast-table")}
+
+
+def _paper_tables(inputs: ReportInputs) -> list[dict]:
+    from hmcore.reporting.paper_tables import paper_tables
+
+    if inputs.best is None or not inputs.best.get("metrics", {}).get("categories"):
+        return []
+    heads = {"categories": "Match by category", "wells": "C_match (%) per well and category",
+             "ratios": "GOR and water cut per well: records used, left out and why"}
+    return [{"title": heads[k], "html": df.to_html(index=False, border=0, na_rep="n/a")}
+            for k, df in paper_tables(inputs.best["metrics"]).items()]
+
+
+def _diagnosis(inputs: ReportInputs, names: list[str]) -> dict | None:
+    if inputs.diagnosis_markdown is None:
+        return None
+    from markdown_it import MarkdownIt
+
+    text = "\n".join(line for line in inputs.diagnosis_markdown.splitlines()
+                     if not line.startswith("![")) + "\n"  # figures are embedded below
+    html = MarkdownIt("commonmark", {"html": False}).enable("table").render(text)
+    return {"html": html, "figures": [n for n in names if n.startswith("diagnosis__")]}
