@@ -6,29 +6,32 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-
 from typing import Annotated, Literal
 
 from prefect import flow, get_run_logger
 from pydantic import Field
 
-from hmcore.calibration.methods import make_proposer
-from hmcore.calibration.registry import (DEFAULT_AGENT, METHODS, default_campaign_name,
-                                         method_version)
+from flows.labels import Progress, campaign_run_name, tag_flow_run
+from flows.refuse import USER_ERRORS, input_problems, refused
+from flows.runners import Runner
+from flows.runners import task_runner as make_runner
 from hmcore.calibration.calls import Job
 from hmcore.calibration.loop import calibrate
-from hmcore.scoring.evaluation import SCORING_VERSION
-from flows.labels import Progress, campaign_run_name, tag_flow_run
-from storage import ArtifactStore, EvaluationJournal
-from flows.refuse import USER_ERRORS, input_problems, refused
+from hmcore.calibration.methods import make_proposer
+from hmcore.calibration.registry import (
+    DEFAULT_AGENT,
+    METHODS,
+    default_campaign_name,
+    method_version,
+)
 from hmcore.cases import load_case
+from hmcore.scoring.evaluation import SCORING_VERSION
+from storage import ArtifactStore, EvaluationJournal, validate_name
 from tasks.case import deck_file_hashes, prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
 from tasks.reference import reference_name, reference_settings, run_references
 from tasks.results import archive_best, consolidate, report
 from tasks.simulate import observation_set, simulate, simulate_parameters
-from flows.runners import Runner
-from flows.runners import task_runner as make_runner
 
 DEFAULT_STORAGE = "./hmflow-storage"
 
@@ -77,8 +80,6 @@ def fork_origin(store_root: str, campaign: str) -> dict:
     """What a fork records of the campaign it comes from: its name and fingerprint (the case
     artifact it was bound to and the hashes of every file its deck read). ValueError when
     there is no such stored campaign."""
-    from storage import validate_name
-
     path = Path(store_root) / validate_name("campaign", campaign) / "campaign.json"
     if not path.is_file():
         raise ValueError(f"cannot fork from campaign '{campaign}': it is not in {store_root}")

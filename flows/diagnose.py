@@ -1,5 +1,7 @@
 """The diagnose flow: calibrate -> analyse residuals -> rank causes -> extend -> recalibrate ->
-report. Simulations are Prefect tasks submitted together (``workers`` at a time); every step's
+report. Simulations are Prefect tasks submitted together (``workers`` at a time), each run
+journaled (:class:`tasks.diagnose.JournaledRuns`): a diagnosis killed and started again with
+the same command replays the runs it had made and simulates only the others. Every step's
 artifacts are stored as versioned artifacts of the campaign (steps ``diagnosis-calibration``,
 ``diagnosis-residuals``, ``diagnosis-ranking``, ``diagnosis-extension``,
 ``diagnosis-recalibration``, ``diagnosis-report``; the report holds ``diagnosis.json``). The
@@ -15,24 +17,22 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import itertools
 import tempfile
-import threading
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
+import pandas as pd
 from prefect import flow, get_run_logger
 from pydantic import Field
 
-from hmcore.diagnosis import (Diagnosis, DiagnosisSettings, budget_problem, diagnose_all,
-                              parse_kinds)
-from storage import sha256_json
+from flows.refuse import USER_ERRORS, input_problems, refused
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
-from flows.refuse import USER_ERRORS, input_problems, refused
-from hmcore.cases import load_case
+from hmcore.cases import BUILTIN_CASES, load_case
+from hmcore.diagnosis import Diagnosis, DiagnosisSettings, budget_problem, diagnose_all, parse_kinds
+from storage import code_version, sha256_json
 from tasks.case import fingerprint_differences, prepare_deck
-from tasks.diagnose import simulate_values, store_step
+from tasks.diagnose import JournaledRuns, diagnosis_journal, store_step
 from tasks.results import report as campaign_report
 
 DEFAULT_STORAGE = "./hmflow-storage"
@@ -56,8 +56,6 @@ def _content_hash(files: dict[str, Any]) -> str:
         elif isinstance(v, dict):
             h.update(sha256_json(v).encode())
         else:  # DataFrame
-            import pandas as pd
-
             h.update(pd.util.hash_pandas_object(v, index=True).values.tobytes())
         h.update(name.encode())
     return h.hexdigest()
@@ -69,8 +67,6 @@ def campaign_start(store, name: str, case: str | None = None) -> tuple[str, dict
     named, None: the campaign's own). A case whose files differ from the campaign's (hashes
     of the case file, deck, includes and history) is refused: the best parameters belong to
     the campaign's case. LookupError when the campaign has no archived best."""
-    from hmcore.cases import BUILTIN_CASES, load_case
-
     best, stored = store.latest(name, "best"), store.latest(name, "case")
     if best is None or stored is None:
         raise LookupError(f"no archived best case of campaign '{name}' in {store.root}: run "
@@ -146,17 +142,10 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
         return refused(exc)
     campaign = campaign or default_campaign_name(loaded.name)
     case_version = prepare_deck(loaded, case, storage, campaign)
-    run_root = Path(storage) / campaign / "diagnosis-runs"
-    counter = itertools.count()
-    lock = threading.Lock()
-
-    def evaluate_batch(c, values_list, step):
-        with lock:
-            dirs = [str(run_root / f"{step}-{next(counter):05d}") for _ in values_list]
-        futures = [runner.submit(simulate_values, {"case": c, "values": v, "run_dir": d})
-                   for v, d in zip(values_list, dirs)]
-        return [f.result() for f in futures]
-
+    journal = diagnosis_journal({"case": case_version.ref(),
+                                 "settings": diagnosis_settings.to_dict(),
+                                 "calibrated": calibrated, "initial": initial,
+                                 "code_version": code_version()})
     previous: dict[str, Any] = {"case": case_version.ref()}
     versions = {}
 
@@ -170,7 +159,11 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
         return v
 
     with make_runner(task_runner, workers, dask_address) as runner:
-        out = diagnose_all(loaded, evaluate_batch, calibrated=calibrated, initial=initial,
+        runs = JournaledRuns(storage, campaign, journal, runner)
+        if runs.journaled:
+            logger.info(f"resuming the diagnosis {campaign}: {runs.journaled} runs already "
+                        f"journaled ({runs.journal.directory}), replayed, not simulated")
+        out = diagnose_all(loaded, runs, calibrated=calibrated, initial=initial,
                            settings=diagnosis_settings, log=logger.info,
                            on_step=lambda name, d: store(f"diagnosis-{name}",
                                                          step_files(name, d)))
@@ -195,8 +188,6 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
 def step_files(name: str, d: Diagnosis) -> dict[str, Any]:
     """The files stored for step ``name`` of a round (``calibration``, ``2-ranking``,
     ``later-recalibration``, ...; see :mod:`hmcore.diagnosis.rounds`)."""
-    import pandas as pd
-
     step = name.rsplit("-", 1)[-1]
     if step == "calibration":
         return {"calibration.json": d.calibration,

@@ -10,6 +10,7 @@ from hmcore.calibration.registry import DEFAULT_AGENT, default_campaign_name
 from hmcore.cases import case_name
 from tasks.naming import artifact_key
 
+
 def _stamp() -> str:
     return datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
 

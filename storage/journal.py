@@ -1,6 +1,7 @@
 """Write-once evaluation journal: one JSON file per evaluation, written as it completes.
 
-Records live in ``ROOT/<campaign>/evaluations/<index:06d>.json``. Each is written to a temp
+Records live in ``ROOT/<campaign>/evaluations/<index:06d>.json`` (a campaign's other journals,
+e.g. a diagnosis's runs, in ``ROOT/<campaign>/evaluations-<name>/``). Each is written to a temp
 file in the same folder, fsync'd and moved into place with ``os.replace``, so a killed campaign
 leaves only whole records and can be resumed, and its report rebuilt, from :meth:`rows`.
 Values go through :func:`storage.jsonable.to_jsonable`: NumPy scalars become Python numbers and
@@ -21,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from .jsonable import canonical_json, to_jsonable
-from .store import JOURNAL_STEP, ArtifactStore, refuse_links, validate_name
+from .store import ArtifactStore, journal_folder, refuse_links, validate_name
 
 _RECORD_RE = re.compile(r"(\d{6,})\.json")
 
@@ -31,15 +32,19 @@ class JournalConflictError(ValueError):
 
 
 class EvaluationJournal:
-    """The evaluations of one campaign, one write-once JSON record per evaluation index."""
+    """The evaluations of one campaign, one write-once JSON record per evaluation index;
+    ``name``: another journal of the campaign (see :func:`storage.store.journal_folder`)."""
 
-    def __init__(self, store: ArtifactStore, campaign: str):
+    def __init__(self, store: ArtifactStore, campaign: str, name: str | None = None):
         self.store = store
         self.campaign = validate_name("campaign", campaign)
-        self.directory = store.root / campaign / JOURNAL_STEP
+        self.name = name
+        self.folder = journal_folder(name)
+        self.directory = store.root / campaign / self.folder
 
     def __repr__(self) -> str:
-        return f"EvaluationJournal({self.store!r}, {self.campaign!r})"
+        named = "" if self.name is None else f", {self.name!r}"
+        return f"EvaluationJournal({self.store!r}, {self.campaign!r}{named})"
 
     def path(self, index: int) -> Path:
         """Path of the record of evaluation ``index``."""
@@ -71,7 +76,7 @@ class EvaluationJournal:
             raise JournalConflictError(
                 f"evaluation {index} is already recorded in {target} with different content "
                 f"(differs in {keys}); records are write-once, use a new index")
-        refuse_links(self.store.root, self.campaign, JOURNAL_STEP)
+        refuse_links(self.store.root, self.campaign, self.folder)
         self.directory.mkdir(parents=True, exist_ok=True)
         tmp = self.directory / f".tmp-{uuid.uuid4().hex}.json"
         try:

@@ -8,7 +8,9 @@ Layout: ``ROOT/<campaign>/<step>/v0001/`` holding the step's files and a ``manif
 A version is written in a hidden temp dir inside the step folder and published with one atomic
 ``os.rename``, so readers never see a half-written version and a crash leaves at most a
 ``.tmp-*`` dir behind (ignored by every listing). Existing versions are never overwritten or
-deleted. ``ROOT/<campaign>/evaluations/`` is reserved for :class:`storage.EvaluationJournal`.
+deleted. ``ROOT/<campaign>/evaluations/`` (and ``evaluations-<name>/``, a campaign's other
+journals) is reserved for :class:`storage.EvaluationJournal`; ``ROOT/<campaign>/runs/`` and
+``diagnosis-runs/`` hold the simulator's run directories (:meth:`ArtifactStore.work_dir`).
 
 The store never leaves its root: campaign and step names are checked before use (no ``/``,
 no ``..``), and no symbolic link below the root is followed for writing (a linked campaign or
@@ -37,6 +39,10 @@ from .jsonable import sha256_json, to_jsonable
 
 MANIFEST = "manifest.json"
 JOURNAL_STEP = "evaluations"
+RUNS = "runs"
+"""Folder of a campaign's run directories, one per call (``runs/<index:06d>``)."""
+DIAGNOSIS_RUNS = "diagnosis-runs"
+"""Folder of a diagnosis's run directories, one per run (``diagnosis-runs/<step>-<n:05d>``)."""
 NAME_RULE = "1-128 characters among letters, digits, '-', '_' and '.', not starting with '.'"
 _NAME_RE = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,127}")
 _VERSION_RE = re.compile(r"v(\d{4,})")
@@ -63,6 +69,19 @@ def refuse_links(root: Path, *names: str) -> Path:
             raise LinkRefusedError(f"{path} is not a folder; the artifact store needs a folder "
                                    "there. Move the file away")
     return path
+
+
+def journal_folder(name: str | None = None) -> str:
+    """The folder of a campaign's journal: ``evaluations`` for its calls (``name`` None), else
+    ``evaluations-<name>`` for another journal of the campaign (e.g. a diagnosis's runs)."""
+    if name is None:
+        return JOURNAL_STEP
+    return validate_name("journal", f"{JOURNAL_STEP}-{validate_name('journal', name)}")
+
+
+def is_journal_folder(step: str) -> bool:
+    """Whether ``step`` names a journal's folder (see :func:`journal_folder`)."""
+    return step == JOURNAL_STEP or step.startswith(f"{JOURNAL_STEP}-")
 
 
 def validate_name(kind: str, value: object) -> str:
@@ -169,6 +188,9 @@ class ArtifactStore:
         step_dir = self._step_dir(campaign, step)
         if step == JOURNAL_STEP:
             raise ValueError(f"step name {JOURNAL_STEP!r} is reserved for the evaluation journal")
+        if is_journal_folder(step):
+            raise ValueError(f"step name {step!r} is reserved for a journal (names starting "
+                             f"with {JOURNAL_STEP}-)")
         if not isinstance(inputs, Mapping):
             raise TypeError(f"inputs must be a dict, got {type(inputs).__name__}")
         if not isinstance(code_version, str) or not code_version:
@@ -275,7 +297,13 @@ class ArtifactStore:
         """Names of the steps of ``campaign`` that have at least one version, sorted."""
         campaign_dir = self.root / validate_name("campaign", campaign)
         return [s for s in _subdirs(campaign_dir)
-                if s != JOURNAL_STEP and self._version_numbers(campaign_dir / s)]
+                if not is_journal_folder(s) and self._version_numbers(campaign_dir / s)]
+
+    def work_dir(self, campaign: str, folder: str) -> Path:
+        """``ROOT/<campaign>/<folder>``, a folder of files that are no artifact version (the
+        simulator's run directories: :data:`RUNS`, :data:`DIAGNOSIS_RUNS`); names checked, not
+        created."""
+        return self.root / validate_name("campaign", campaign) / validate_name("folder", folder)
 
     def _step_dir(self, campaign: str, step: str) -> Path:
         return self.root / validate_name("campaign", campaign) / validate_name("step", step)

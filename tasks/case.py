@@ -10,10 +10,13 @@ from pathlib import Path
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
+import hmcore.model.case as case_models
+from hmcore.eclipse.includes import deck_files
 from hmcore.model.case import Case
+from hmcore.model.parameters import Parameter
 from hmcore.model.run_deck import prepare_run_deck
-from hmcore.reporting.report import to_jsonable
 from storage import ArtifactStore, ArtifactVersion, code_version, refuse_links
+from storage.jsonable import to_jsonable
 
 
 def file_sha256(path: Path) -> str:
@@ -24,8 +27,6 @@ def deck_file_hashes(case: Case) -> dict[str, str]:
     """SHA-256 of every file the deck reads (the main file and its INCLUDEs, recursively,
     wherever they are); other files beside the deck do not count. Keyed by the path relative
     to the deck's folder (so the case folder can move), absolute for a file outside it."""
-    from hmcore.eclipse.includes import deck_files
-
     home = Path(case.deck).resolve().parent
 
     def key(p: Path) -> str:
@@ -90,9 +91,6 @@ def _meaning(version: ArtifactVersion) -> dict:
     """A stored case as the current code reads it: settings and parameters with today's
     defaults for what an older version did not store; paths and the case file's bytes
     (comments, layout) left out, the prepared deck by its files' hashes."""
-    import hmcore.model.case as case_models
-    from hmcore.model.parameters import Parameter
-
     stored = version.read_json("case.json")
     meaning = {k: stored.get(k) for k in _COMPARED}
     for key, model in _SETTINGS.items():

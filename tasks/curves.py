@@ -15,8 +15,8 @@ import pandas as pd
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from hmcore.reporting.benchmark import case_truth
 from hmcore.calibration.loop import best_record
+from hmcore.reporting.benchmark import case_truth
 from hmcore.simulation.curves import read_curves
 from hmcore.simulation.forecast import DEFAULT_MEMBERS, choose_members, forecast_table
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version

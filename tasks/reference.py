@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from hmcore.reporting import benchmark
 from hmcore.calibration.calls import Job
 from hmcore.model.case import Case
+from hmcore.model.deck_values import base_values
+from hmcore.reporting import benchmark
 from hmcore.scoring.evaluation import SCORING_VERSION
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal
+from tasks.simulate import simulate, simulate_parameters
 
 REFERENCE_AGENT = "reference"
 FLOOR, CENTRE = 0, 1
@@ -24,8 +26,6 @@ def reference_name(campaign: str) -> str:
 
 def reference_jobs(case: Case) -> list[Job]:
     """Call 0: the truth's values (known truth) or the deck's own; call 1: the box's centre."""
-    from hmcore.diagnosis.extensions import base_values
-
     truth = benchmark.case_truth(case.source) or base_values(case.info, case.space)
     truth = {n: float(truth[n]) for n in case.space.names}
     centre = np.zeros(case.space.dim)
@@ -44,8 +44,6 @@ def run_references(case: Case, storage: str, reference: str, runner) -> dict[int
     """Simulate, on the started task ``runner``, the reference calls not yet journaled under
     ``reference`` (a campaign of its own, bound by the flow to :func:`reference_settings`)
     and return both records by index."""
-    from tasks.simulate import simulate, simulate_parameters
-
     journal = EvaluationJournal(ArtifactStore(storage), reference)
     done = {r["index"] for r in journal.rows()}
     futures = [runner.submit(simulate, simulate_parameters(case, job, storage, reference, 0,

@@ -7,18 +7,22 @@ import shutil
 from pathlib import Path
 
 from prefect import task
-from prefect.artifacts import (create_link_artifact, create_markdown_artifact,
-                               create_table_artifact)
+from prefect.artifacts import create_link_artifact, create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
 
-from tasks.naming import artifact_key
 from hmcore.calibration.loop import best_record
-from hmcore.reporting.report import build_report, to_jsonable
+from hmcore.diagnosis.report import markdown_report
+from hmcore.model.case import default_history_end
+from hmcore.reporting.benchmark import case_truth
 from hmcore.reporting.html import ReportInputs, render
-from tasks.curves import collect
-from tasks.reference import CENTRE, FLOOR, reference_name
+from hmcore.reporting.paper_tables import paper_tables
+from hmcore.reporting.report import build_report, to_jsonable
 from hmcore.reporting.results import results_table
+from hmcore.scoring.observations import ObservationSet
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version, sha256_json
+from tasks.curves import collect
+from tasks.naming import artifact_key
+from tasks.reference import CENTRE, FLOOR, reference_name
 
 SUMMARY_SUFFIXES = (".SMSPEC", ".UNSMRY", ".DATA", ".LOG", ".PRT", ".INIT", ".EGRID")
 
@@ -118,7 +122,6 @@ def campaign_reference(store: ArtifactStore, campaign: str) -> str:
 def _diagnosis_markdown(diagnosis_doc: dict | None) -> str | None:
     if diagnosis_doc is None:
         return None
-    from hmcore.diagnosis.report import markdown_report
 
     return markdown_report(diagnosis_doc, level=2)
 
@@ -129,16 +132,14 @@ def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, be
     """Load what report.html is drawn from (stored artifacts only)."""
     import pandas as pd
 
-    from hmcore.scoring.observations import ObservationSet
-
     case = store.latest(campaign, "case")
     observed = case.read_parquet("observed.parquet") if "observed.parquet" in case.files \
         else None
     obs = None
     if observed is not None:
         end = case_doc.get("history_end_days")
-        if end is None:  # ObservationSet.from_case's split: the last quarter held back
-            end = float(observed.days.min() + 0.75 * (observed.days.max() - observed.days.min()))
+        if end is None:  # ObservationSet.from_case's split
+            end = default_history_end(observed.days.min(), observed.days.max())
         obs = ObservationSet.from_observed(observed, float(end),
                                            float(case_doc.get("time_tolerance_days", 30.0)))
     forecast_doc = curves.read_json("forecast.json") if curves is not None else None
@@ -165,8 +166,6 @@ def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, be
 def publish(campaign: str, markdown: str, best_doc: dict | None, report_html: Path) -> None:
     """The report as Prefect artifacts: the Markdown, a link to the stored HTML report, and the
     paper's three tables of the best case in the paper's rounding."""
-    from hmcore.reporting.paper_tables import paper_tables
-
     create_markdown_artifact(markdown, key=artifact_key(campaign, "report"),
                              description=f"hmflow report {campaign}")
     create_link_artifact(report_html.resolve().as_uri(), link_text=f"{campaign}: report.html",
@@ -187,6 +186,4 @@ def publish(campaign: str, markdown: str, best_doc: dict | None, report_html: Pa
 def _truth_for(case_doc: dict) -> dict | None:
     """Known true parameters: ``truth.json`` beside the case file (the synthetic case) or the
     ``truth`` of a ``hmflow hide`` case with nothing hidden (see hmcore.reporting.benchmark.case_truth)."""
-    from hmcore.reporting.benchmark import case_truth
-
     return case_truth(Path(case_doc["source"]))

@@ -1,22 +1,60 @@
-"""One simulator call as a Prefect task; its record goes to the campaign journal atomically."""
+"""One simulator call as a Prefect task, the one every flow submits (a campaign's calls, the
+reference runs of a campaign and a benchmark, a diagnosis's runs): its record goes to a
+journal atomically, so a call already journaled is never simulated again.
+
+Where a call's record and run directory go is its :class:`Destination`: a campaign's calls go
+to the campaign's journal (``evaluations/<index:06d>.json``, runs in ``runs/<index:06d>``); a
+diagnosis's to a journal of its own, runs in ``diagnosis-runs/<step>-<n:05d>``, each record
+with the simulated responses table, so that a restarted diagnosis replays a run from its
+record alone (:func:`evaluation_of`).
+"""
 
 from __future__ import annotations
 
+import math
 import os
 import socket
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+import pandas as pd
 from prefect import task
 from prefect.cache_policies import NO_CACHE
+from prefect.runtime import task_run
 
-from tasks.naming import simulate_run_name
 from hmcore.calibration.calls import Job
 from hmcore.model.case import Case
-from hmcore.scoring.evaluation import evaluate, simulator_for
-from hmcore.reporting.report import to_jsonable
-from storage import ArtifactStore, EvaluationJournal
+from hmcore.scoring.evaluation import Evaluation, evaluate, simulator_for
+from hmcore.scoring.observations import ObservationSet
+from storage import RUNS, ArtifactStore, EvaluationJournal, to_jsonable
+from tasks.naming import simulate_run_name
 
+VALUES_RTOL = 1e-9
+"""Relative tolerance of :func:`same_values`: a rerun computes the values it asks for by the
+same arithmetic, so they agree to the last bits; this only forgives the last bits."""
+
+
+@dataclass(frozen=True)
+class Destination:
+    """Where the calls of one journal go in the store of their campaign: the records (the
+    campaign's journal, or its other journal named ``journal``), the run directories (folder
+    ``runs``, each named by ``run_name`` from the call's ``index`` and ``phase``) and whether
+    a record keeps the simulated responses table (``responses``)."""
+
+    journal: str | None = None
+    runs: str = RUNS
+    run_name: str = "{index:06d}"
+    responses: bool = False
+
+    def run_dir(self, store: ArtifactStore, campaign: str, job: Job) -> Path:
+        """The run directory of ``job`` (a fresh one: see :func:`fresh_dir`)."""
+        name = self.run_name.format(index=job.index, phase=job.phase)
+        return fresh_dir(store.work_dir(campaign, self.runs) / name)
+
+
+CAMPAIGN = Destination()
+"""A campaign's calls (and its reference runs): ``evaluations/`` and ``runs/<index:06d>``."""
 
 
 class TransientSimulationError(RuntimeError):
@@ -49,8 +87,6 @@ def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: P
     transient failure (killed by a signal) raises while Prefect still has retries left; a
     timeout is not retried (a model that is too slow is as slow the second time).
     Returns the evaluation and the attempt number."""
-    from prefect.runtime import task_run
-
     simulator = simulator_for(case)
     ev = evaluate(case, values, run_dir, simulator)
     attempt = int(getattr(task_run, "run_count", 1) or 1)
@@ -59,43 +95,75 @@ def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: P
     return ev, attempt
 
 
-def observation_set(case: Case):
+def observation_set(case: Case) -> ObservationSet:
     """The case's measured rows with their noise level (built once per campaign): what the
     whitened residual vector of each call is made from, for the methods that need it."""
-    from hmcore.scoring.observations import ObservationSet
-
     return ObservationSet.from_case(case)
 
 
+def same_values(record: dict, values: dict[str, float]) -> bool:
+    """Whether the journaled ``record`` is a run of these parameter ``values`` (the same names,
+    the same numbers to :data:`VALUES_RTOL`)."""
+    stored = record.get("params") or {}
+    return set(stored) == set(values) and all(
+        stored[k] is not None and math.isclose(float(stored[k]), float(values[k]),
+                                               rel_tol=VALUES_RTOL, abs_tol=VALUES_RTOL)
+        for k in values)
+
+
+def evaluation_of(record: dict) -> Evaluation:
+    """The evaluation a journaled record describes, with its responses table when the record
+    keeps it (see :class:`Destination`): the same, to the last bit, as the one simulated."""
+    ev = Evaluation.from_record(record)
+    table = record.get("responses")
+    if table is None:
+        return ev
+    frame = pd.DataFrame(dict(zip(table["columns"], table["values"], strict=True)))
+    return replace(ev, responses=frame)
+
+
+def responses_record(responses: pd.DataFrame) -> dict:
+    """A responses table as a record holds it: the column names in order (a record's keys are
+    stored sorted) and each column's values."""
+    return {"columns": [str(c) for c in responses.columns],
+            "values": [responses[c].tolist() for c in responses.columns]}
+
+
 def simulate_parameters(case: Case, job: Job, store_root: str, campaign: str, seed: int,
-                        agent: str, observations=None) -> dict:
+                        agent: str, observations=None,
+                        destination: Destination = CAMPAIGN) -> dict:
     """The keyword arguments of :func:`simulate`, for a task runner's ``submit``."""
     return {"case": case, "job": job, "store_root": store_root, "campaign": campaign,
-            "seed": seed, "agent": agent, "observations": observations}
+            "seed": seed, "agent": agent, "observations": observations,
+            "destination": destination}
 
 
 @task(name="simulate", cache_policy=NO_CACHE, retries=2, retry_delay_seconds=1,
       retry_condition_fn=retry_transient, task_run_name=simulate_run_name)
 def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, agent: str,
-             observations=None) -> dict:
-    """Evaluate ``job`` and journal the record; transient failures raise to be retried. With
-    ``observations`` (an ObservationSet) the record also holds ``residuals``, the whitened
-    residual vector of the fitted history (least-squares and ensemble methods use it).
-    A call already journaled (its worker died after writing the record, and the cluster
-    reran it) returns the journaled record: never simulated or recorded twice."""
+             observations=None, destination: Destination = CAMPAIGN) -> dict:
+    """Evaluate ``job`` and journal the record (where: ``destination``); transient failures
+    raise to be retried. With ``observations`` (an ObservationSet) the record also holds
+    ``residuals``, the whitened residual vector of the fitted history (least-squares and
+    ensemble methods use it); with ``destination.responses``, ``responses``, the simulated
+    table (:func:`responses_record`). A call already journaled (its worker died after writing the record, and
+    the cluster reran it) returns the journaled record: never simulated or recorded twice."""
     store = ArtifactStore(store_root)
-    journaled = EvaluationJournal(store, campaign).get(job.index)
+    journal = EvaluationJournal(store, campaign, destination.journal)
+    journaled = journal.get(job.index)
     if journaled is not None:  # a rerun of a call whose worker died after journaling it
         return journaled
-    run_dir = fresh_dir(Path(store_root) / campaign / "runs" / f"{job.index:06d}")
+    run_dir = destination.run_dir(store, campaign, job)
     ev, attempt = evaluate_or_raise_transient(case, job.values, run_dir)
     extra = {}
     if observations is not None and ev.responses is not None:
         extra["residuals"] = observations.residual_vector(ev.responses, "fit").tolist()
+    if destination.responses and ev.responses is not None:
+        extra["responses"] = responses_record(ev.responses)
     record = to_jsonable({"index": job.index, "lane": job.lane, "phase": job.phase,
                           "action": list(job.action), "seed": seed, "agent": agent,
                           "attempts": attempt, "finished_at": time.time(),
                           "host": socket.gethostname(), "host_pid": os.getpid(),  # who ran it
                           **ev.to_record(), **extra})
-    EvaluationJournal(store, campaign).record(job.index, record)
+    journal.record(job.index, record)
     return record

@@ -442,7 +442,8 @@ def _linear_case(tmp_path, hidden=None, hidden_value=1.0, seed=0, hidden_from=No
     pytest.importorskip("opm.io")
     from hmcore.cases import load_case
     from hmcore.scenarios.hidden import noisy_history
-    from hmcore.scenarios.synthetic import DECK_NAME, make_fields, render_deck
+    from hmcore.scenarios.synthetic import DECK_NAME
+    from hmcore.scenarios.synthetic_deck import make_fields, render_deck
 
     field_rng, _ = np.random.default_rng(0).spawn(2)
     (tmp_path / DECK_NAME).write_text(render_deck(make_fields(field_rng), 0))

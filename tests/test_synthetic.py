@@ -17,6 +17,8 @@ import pytest
 from conftest import SIMULATION_SLOTS, requires_opm
 
 from hmcore.scenarios import synthetic as syn
+from hmcore.scenarios import synthetic_deck as syn_deck
+from hmcore.scoring import noise
 from hmcore.model.parameters import Parameter, ParameterSpace
 from hmcore.simulation.simulator import OpmFlow, SimulationResult
 
@@ -64,11 +66,11 @@ def test_case_files_and_case_toml(case_dir: Path) -> None:
     cfg = tomllib.loads((case_dir / syn.CASE_NAME).read_text())["case"]
     assert cfg["name"] == "synthetic" and cfg["deck"] == "SYNTH.DATA"
     assert cfg["observed"] == "observed.csv" and cfg["time_tolerance_days"] == 30
-    end = syn.report_steps()[-1].days
+    end = syn_deck.report_steps()[-1].days
     assert 0.7 * end <= cfg["history_end_days"] <= 0.8 * end
     meta = json.loads((case_dir / syn.TRUTH_NAME).read_text())
     assert meta["parameters"] == syn.SYNTHETIC_TRUTH and meta["seed"] == 0
-    assert meta["generator_version"] == syn.GENERATOR_VERSION and "noise" in meta
+    assert meta["generator_version"] == syn_deck.GENERATOR_VERSION and "noise" in meta
     assert not ParameterSpace.reference().check_in_bounds(syn.SYNTHETIC_TRUTH)
 
 
@@ -107,14 +109,14 @@ def test_same_seed_gives_identical_files(case_dir: Path, tmp_path: Path) -> None
 
 
 def test_fields_depend_only_on_the_seed() -> None:
-    def fields(seed: int) -> syn.SyntheticFields:
-        return syn.make_fields(np.random.default_rng(seed).spawn(2)[0])
+    def fields(seed: int) -> syn_deck.SyntheticFields:
+        return syn_deck.make_fields(np.random.default_rng(seed).spawn(2)[0])
 
     a, b, c = fields(0), fields(0), fields(1)
     for name in ("poro", "permx", "permz"):
         assert np.array_equal(getattr(a, name), getattr(b, name))
         assert not np.allclose(getattr(a, name), getattr(c, name))
-    assert syn.render_deck(a, 0) == syn.render_deck(b, 0) != syn.render_deck(c, 1)
+    assert syn_deck.render_deck(a, 0) == syn_deck.render_deck(b, 0) != syn_deck.render_deck(c, 1)
     # layered log-normal field, porosity tied to log-perm
     logk = np.log(a.permx)
     means = np.exp(logk.mean(axis=(1, 2)))
@@ -139,7 +141,7 @@ def test_deck_parses_and_is_editable(case_dir: Path) -> None:
     props = state.field_props()
     assert np.array_equal(props.get_double_array("PERMX"), props.get_double_array("PERMY"))
     tops = np.asarray(deck["TOPS"].get_raw_array())
-    assert tops.size == syn.NX * syn.NY * syn.NZ and np.ptp(tops) > 50.0  # a real structure
+    assert tops.size == syn_deck.NX * syn_deck.NY * syn_deck.NZ and np.ptp(tops) > 50.0  # a real structure
 
     lines = deck_path.read_text().splitlines()
     for section in ("RUNSPEC", "GRID", "PROPS", "REGIONS", "SOLUTION", "SUMMARY", "SCHEDULE"):
@@ -153,7 +155,7 @@ def test_deck_parses_and_is_editable(case_dir: Path) -> None:
     for ln in conns:
         items = ln.split()
         assert items[0].startswith("'") and items[-1] == "/" and items[3] == items[4]
-        assert float(items[10]) == syn.BASE_SKIN and items[7] == "1*"  # CF defaulted
+        assert float(items[10]) == syn_deck.BASE_SKIN and items[7] == "1*"  # CF defaulted
     summary = "\n".join(lines[lines.index("SUMMARY"):lines.index("SCHEDULE")])
     for kw in ("WBHP", "WOPR", "WWPR", "WGPR", "WGOR", "WWCT"):
         assert f"\n{kw}\n " + " ".join(f"'{w.name}'" for w in syn.WELLS) in summary, kw
@@ -161,7 +163,7 @@ def test_deck_parses_and_is_editable(case_dir: Path) -> None:
 
 # ------------------------------------------------------------------------------ truth
 def test_truth_has_information_in_every_response(truth: pd.DataFrame, case_dir: Path) -> None:
-    steps = syn.report_steps()
+    steps = syn_deck.report_steps()
     assert sorted(set(truth.days)) == [s.days for s in steps]
     end = tomllib.loads((case_dir / syn.CASE_NAME).read_text())["case"]["history_end_days"]
     water, gas = [], []
@@ -197,7 +199,7 @@ def test_observed_noise_matches_sigma(observed: pd.DataFrame, truth: pd.DataFram
     units = observed.groupby("quantity")["units"].unique().map(list).to_dict()
     assert units == {"WOPR": ["sm3/day"], "WBHP": ["bar"], "WGOR": ["sm3/sm3"],
                      "WWCT": ["fraction"]}
-    assert observed.date.iloc[0] == (syn.START_DATE + pd.Timedelta(
+    assert observed.date.iloc[0] == (syn_deck.START_DATE + pd.Timedelta(
         days=float(observed.days.iloc[0]))).isoformat()
     m = observed.merge(truth, on=["well", "days", "quantity"], suffixes=("", "_true"))
     assert len(m) == len(observed)
@@ -208,14 +210,14 @@ def test_observed_noise_matches_sigma(observed: pd.DataFrame, truth: pd.DataFram
     # GOR and WCT only while flowing; BHP flowing and shut-in with the documented sigmas
     assert (m[m.quantity.isin(["WGOR", "WWCT"])].flowing == 1).all()
     bhp = m[m.quantity == "WBHP"]
-    assert set(bhp[bhp.flowing == 1].sigma) == {syn.BHP_SIGMA_FLOWING_BAR}
-    assert set(bhp[bhp.flowing == 0].sigma) == {syn.BHP_SIGMA_SHUTIN_BAR}
+    assert set(bhp[bhp.flowing == 1].sigma) == {noise.BHP_SIGMA_FLOWING_BAR}
+    assert set(bhp[bhp.flowing == 0].sigma) == {noise.BHP_SIGMA_SHUTIN_BAR}
     wct = m[m.quantity == "WWCT"]
-    assert set(wct.sigma) == {syn.WCT_SIGMA_BEFORE, syn.WCT_SIGMA_AFTER}
+    assert set(wct.sigma) == {noise.WCT_SIGMA_BEFORE, noise.WCT_SIGMA_AFTER}
     assert wct.value.between(0.0, 1.0).all()
     gor = m[m.quantity == "WGOR"]
     frac = (gor.sigma / gor.value_true).round(3)
-    assert set(frac) == {syn.GOR_SIGMA_FRAC_BEFORE, syn.GOR_SIGMA_FRAC_AFTER}
+    assert set(frac) == {noise.GOR_SIGMA_FRAC_BEFORE, noise.GOR_SIGMA_FRAC_AFTER}
     assert (gor.value >= 0).all()
 
     for q in ("WBHP", "WGOR", "WWCT"):

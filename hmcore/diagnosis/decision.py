@@ -2,82 +2,26 @@
 vetoes, the ranked causes, the verdict in words and the gain.
 
 Plain functions of the recalibration records (dicts with the fitted and held-back SSR and E
-before and after, see :meth:`hmcore.diagnosis.workflow.Diagnosis.recalibrate`), the score tests
-and the settings; nothing here simulates.
+before and after, :func:`hmcore.diagnosis.confirmation.record`), the score tests and the
+settings; nothing here simulates. The rules a record is judged by (the fit line, the held-back
+rule) are :mod:`hmcore.diagnosis.confirmation`'s.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
-
-import pandas as pd
 
 from hmcore.diagnosis.attribution import Score
+from hmcore.diagnosis.confirmation import fit_line, heldout_noise_line
+from hmcore.diagnosis.confirmation import heldout_decisive_drop  # noqa: F401  (re-exported:
+# hmcore.scenarios.judge imports it from here)
 from hmcore.diagnosis.extensions import Candidate
 from hmcore.diagnosis.settings import DiagnosisSettings
 from hmcore.ordering import natural_key
 
 
-# ----------------------------------------------------------------------------- held-back rule
-def heldout_noise_line(n_heldout: int, s: DiagnosisSettings) -> float:
-    """Largest held-back whitened SSR still consistent with noise: the chi-square mean
-    + ``s.quiet_sd`` standard deviations (``n_heldout``: the measured points, rate controls
-    not counted; see :meth:`ObservationSet.n_noise`)."""
-    return n_heldout + s.quiet_sd * math.sqrt(2.0 * n_heldout)
-
-
-def heldout_confirms(ssr_before: float, ssr_after: float, e_before: float, e_after: float,
-                     n_heldout: int, s: DiagnosisSettings, decisive: bool = True
-                     ) -> tuple[bool, bool]:
-    """Does the held-back history confirm an extension? Returns (confirmed, quiet).
-
-    ``ssr_*``: whitened SSR of the held-back points (``n_heldout`` of them) before / after the
-    extension; ``e_*``: held-back misfit E. Confirmed: E drops and the SSR drops by more than
-    ``s.heldout_threshold``; or, when the calibrated model already fits the held-back points
-    within noise (``quiet``: SSR at most the chi-square mean + ``s.quiet_sd`` standard
-    deviations, so they hold no signal to explain), E drops and the SSR does not rise by more
-    than ``s.heldout_threshold``; or (``decisive``) the SSR drops decisively (by more than
-    :func:`heldout_decisive_drop`) and E rises by less than ``s.heldout_e_slack``.
-
-    E weights every point alike whatever its noise, so where noisy responses dominate it (water
-    and gas rates after breakthrough, 25 % GOR errors) it can rise for the truth itself: PUNQ-S3
-    with aquifer 2's AQUCT permeability x9.2 hidden, the whole schedule, 75 % fitted - the
-    calibrated base scored held-back E 0.00789, the truth 0.00876; the recalibrated aquifer
-    (x9.13, the globals back at the deck's values) 0.00889 while the whitened held-back SSR
-    fell 1990 -> 703 over 282 measured points."""
-    if n_heldout <= 0 or not (math.isfinite(e_after) and math.isfinite(ssr_after)):
-        return False, False
-    quiet = ssr_before <= heldout_noise_line(n_heldout, s)
-    d = ssr_before - ssr_after
-    ok = (e_after < e_before and (d > s.heldout_threshold or
-                                  (quiet and d > -s.heldout_threshold))
-          or (decisive and d > heldout_decisive_drop(n_heldout, s)
-              and e_after < e_before * (1.0 + s.heldout_e_slack)))
-    return bool(ok), bool(quiet)
-
-
-def heldout_decisive_drop(n_heldout: int, s: DiagnosisSettings) -> float:
-    """A drop of the held-back whitened SSR that noise cannot make, whatever E does: more than
-    ``s.quiet_sd`` standard deviations of the chi-square of ``n_heldout`` measured points
-    (and more than ``s.heldout_threshold``)."""
-    return max(s.heldout_threshold, s.quiet_sd * math.sqrt(2.0 * n_heldout))
-
-
 # ----------------------------------------------------------------------------- the statistic
-def fit_line(s: DiagnosisSettings, dof: int = 1) -> float:
-    """The line a recalibrated cause's fitted-SSR drop must pass: ``s.fit_threshold`` for one
-    parameter; for ``dof`` > 1 (a dated cause: its factor and the date the scan chose) the
-    chi-square(``dof``) quantile at the same tail probability, so that every cause faces the
-    same false-alarm rate (15.1 over 30 candidates is 18.4 with 2 degrees of freedom)."""
-    if dof <= 1:
-        return float(s.fit_threshold)
-    from scipy.stats import chi2
-
-    return float(chi2.isf(chi2.sf(s.fit_threshold, 1), dof))
-
-
 def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, ...],
               base_ssr_fit: float, n_tests: int, s: DiagnosisSettings,
               dated: set[str] = frozenset(), n_noise: int | None = None) -> dict | None:
@@ -94,7 +38,7 @@ def statistic(confirmed: dict[str, dict], confirmed_ok: list[str] | tuple[str, .
     (``base_ssr_fit - n_noise``) the cause removes - near 1 for the whole cause, small for a
     candidate that only catches a projection of something no family makes. None when nothing
     was recalibrated."""
-    from scipy.stats import chi2
+    from scipy.stats import chi2  # slow to import: only when needed
 
     if not confirmed:
         return None
@@ -198,12 +142,11 @@ def localise(residuals: dict | None, alpha: float) -> tuple[list[dict], float, i
     """The residual findings still beyond noise after a family-wise correction: every well x
     response x period of :func:`hmcore.diagnosis.residuals.analyse_residuals` makes two tests
     (bias, trend), m in all - the fitted window's periods only: a held-back prediction also
-    carries the calibrated parameters' own error (a control with nothing hidden misses its
-    held-back oil rate at z 5.7, synthetic seed 6), which the noise model does not describe -;
+    carries the calibrated parameters' own error, which the noise model does not describe -;
     a finding's |z| must exceed ``norm.isf(alpha / (2 m))`` (two-sided
     Bonferroni: pure noise reaches it with probability at most ``alpha``). Returns (findings
     strongest first - well, response, period, days, z_bias, z_trend -, the z line, m)."""
-    from scipy.stats import norm
+    from scipy.stats import norm  # slow to import: only when needed
 
     stats = [(w, r, p, st) for w, resp in ((residuals or {}).get("wells") or {}).items()
              for r, periods in resp.items() for p, st in periods.items()
@@ -451,19 +394,6 @@ def _verdict(selected: str | None, confirmed_ok: list[str], confirmed: dict[str,
 
 
 # ----------------------------------------------------------------------------- per well
-def per_well_heldout(case: Any, responses: pd.DataFrame | None) -> dict:
-    """Held-back misfit E per well and response of ``responses`` (empty when the case holds
-    nothing back or the run failed)."""
-    from hmcore.scoring.alignment import align
-    from hmcore.scoring.misfit import category_ranges, misfit
-
-    held = case.heldout_observed
-    if held.empty or responses is None:
-        return {}
-    ha = align(held, responses, case.time_tolerance_days)
-    return misfit(ha.pairs, "mean", 0.0, category_ranges(case.observed)).per_well_response
-
-
 def worst_heldout_rises(before: dict, after: dict, n: int = 3) -> str:
     """The ``n`` largest rises of held-back E contributions (well -> response -> E) in words."""
     rises = sorted(((a - before[w][r], w, r, before[w][r], a)

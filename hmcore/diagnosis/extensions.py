@@ -38,15 +38,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from datetime import timedelta
-from pathlib import Path
 
 import numpy as np
 
 from hmcore.eclipse.deck_info import DeckInfo
+from hmcore.eclipse.tables import width
 from hmcore.diagnosis.recalibrate import Coordinates
-from hmcore.eclipse.lexer import expand_repeats, include_target, records, split_blocks
-from hmcore.eclipse.includes import resolve_include
+from hmcore.model.deck_values import (base_values,  # noqa: F401 (the diagnosis's start)
+                                      deck_blocks, deck_skins)
 from hmcore.model.parameters import Parameter, ParameterSpace
+from hmcore.model.run_deck import critical_saturation
 from hmcore.ordering import natural_key
 
 KINDS = ("well_skin", "regional_permeability", "layer_permeability", "vertical_permeability",
@@ -126,62 +127,6 @@ def open_end(c: Candidate, value: float, near: float) -> str | None:
 
 
 # ----------------------------------------------------------------------------- deck facts
-def deck_blocks(info: DeckInfo) -> dict[str, list[list[str]]]:
-    """Records of selected keywords in the deck (include files followed)."""
-    wanted = {"AQUCT", "AQUFETP", "COMPDAT", "SWOF", "SWFN", "SGOF", "SGFN"}
-    found: dict[str, list[list[str]]] = {}
-    seen: set[Path] = set()
-
-    def visit(path: Path) -> None:
-        if path in seen or not path.is_file():
-            return
-        seen.add(path)
-        if path.stat().st_size > 2 ** 21 and path != info.path:
-            return
-        for block in split_blocks(path.read_text(errors="replace"), info.keyword_names):
-            if block.keyword == "INCLUDE":
-                target = include_target(block)
-                if target:
-                    visit(resolve_include(target, path, info.path.parent))
-            elif block.keyword in wanted:
-                found.setdefault(block.keyword, []).extend(
-                    [expand_repeats(r) for r in records(block.body)])
-
-    visit(info.path)
-    return found
-
-
-def deck_skins(info: DeckInfo) -> dict[str, float]:
-    """Mean COMPDAT skin (item 11, default 0) of each well's connections in the deck."""
-    skins: dict[str, list[float]] = {}
-    for rec in deck_blocks(info).get("COMPDAT", []):
-        well = rec[0].strip("'\"")
-        try:
-            s = float(rec[10]) if len(rec) > 10 and rec[10] != "1*" else 0.0
-        except ValueError:
-            s = 0.0
-        skins.setdefault(well, []).append(s)
-    return {w: sum(v) / len(v) for w, v in skins.items()}
-
-
-def base_values(info: DeckInfo, space: ParameterSpace) -> dict[str, float]:
-    """The base model as given, in ``space``: multipliers 1, shifts 0, each skin parameter the
-    mean deck skin (COMPDAT item 11) of its wells (default: the producers), clipped to its
-    bounds."""
-    skins = deck_skins(info)
-    out = {}
-    for p in space.parameters:
-        if p.kind == "skin":
-            wells = p.wells or tuple(info.producers)
-            v = float(np.mean([skins.get(w, 0.0) for w in wells])) if wells else 0.0
-        elif p.kind == "relperm" and p.mode == "endpoint":
-            v = 0.0  # a shift: none
-        else:
-            v = 1.0
-        out[p.name] = float(np.clip(v, p.low, p.high))
-    return out
-
-
 def current_skin(well: str, space: ParameterSpace, values: dict[str, float],
                  info: DeckInfo) -> float:
     """The skin ``well`` has in the model with ``values`` (the last skin parameter touching it,
@@ -445,9 +390,6 @@ def critical_room(info: DeckInfo, table: str) -> float:
     deck's tables of that keyword (one per saturation region). 0 when a table starts at its
     critical saturation (a shift down then changes nothing); 0.5 when the tables cannot be
     read (defaulted items: the deck writer refuses to shift them anyway)."""
-    from hmcore.model.run_deck import critical_saturation
-    from hmcore.eclipse.tables import width
-
     rooms = []
     for rec in deck_blocks(info).get(table, []):
         try:

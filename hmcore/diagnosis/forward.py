@@ -3,8 +3,8 @@ accept what the second round finds with its own gain.
 
 Two effects of different kinds hide each other from a one-cause diagnosis: the strongest
 candidate fits the fitted history far beyond noise, but without the second effect it predicts
-the held-back history worse, and the held-back rule vetoes it (issue 18: a well's skin at chi2
-218 vetoed, the weaker other cause accepted alone). Greedy forward selection answers it:
+the held-back history worse, and the held-back rule vetoes it (then the weaker other cause is
+accepted alone). Greedy forward selection answers it:
 
 1. round 1 is the ordinary diagnosis (:mod:`hmcore.diagnosis.workflow`);
 2. its first cause - the selected one, or else the best recalibrated fit beyond noise that the
@@ -17,7 +17,7 @@ the held-back history worse, and the held-back rule vetoes it (issue 18: a well'
    is accepted with its own gain. A tentative first cause is accepted only together with a
    second one, and only when the pair predicts the held-back history better than the
    calibrated model under the round-1 noise model (the same rule,
-   :func:`hmcore.diagnosis.decision.heldout_confirms`); otherwise round 1's answer stands.
+   :func:`hmcore.diagnosis.confirmation.heldout_confirms`); otherwise round 1's answer stands.
 
 Plain functions of two :class:`Diagnosis` objects; the caller runs round 2's steps (so the
 Prefect flow stores them) and nothing here simulates.
@@ -30,8 +30,11 @@ import dataclasses
 from dataclasses import dataclass
 
 from hmcore.diagnosis import decision
+from hmcore.diagnosis.budget import budget_problem
+from hmcore.diagnosis.confirmation import heldout_confirms, heldout_noise_line
 from hmcore.diagnosis.extensions import extended_space
-from hmcore.diagnosis.workflow import Diagnosis, budget_problem
+from hmcore.diagnosis.runs import heldout_per_well
+from hmcore.diagnosis.workflow import Diagnosis
 
 
 @dataclass(frozen=True)
@@ -71,7 +74,7 @@ def plan(d1: Diagnosis, doc1: dict) -> Plan | str:
     problem = budget_problem(case2, s2, True, "budget")
     if problem is not None:
         return f"the budget left after round 1 ({left} calls) cannot cover a second round"
-    d2 = Diagnosis(case2, d1._evaluate, s2, log=lambda msg: d1.log(f"round 2: {msg}"))
+    d2 = Diagnosis(case2, d1.evaluate_batch, s2, log=lambda msg: d1.log(f"round 2: {msg}"))
     return Plan(cid, tentative, d2)
 
 
@@ -101,12 +104,12 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
     doc = copy.deepcopy(doc1)
     doc["cost"]["simulations"] = d1.n_runs + d2.n_runs
     doc["cost"]["sim_time_s"] = d1.sim_time_s + d2.sim_time_s
-    base_sc = d1._scores(d1.base)
+    base_sc = d1.scores(d1.base)
     pair_ok = False
     if pair_run is not None:
-        again = d1._rescore(pair_run)  # under the round-1 noise model: the same yardstick
-        pair_sc = d1._scores(again)
-        pair_ok = not p.tentative or decision.heldout_confirms(
+        again = d1.rescore(pair_run)  # under the round-1 noise model: the same yardstick
+        pair_sc = d1.scores(again)
+        pair_ok = not p.tentative or heldout_confirms(
             base_sc["ssr_heldout"], again.ssr_heldout, base_sc["E_heldout"],
             pair_sc["E_heldout"], d1.obs.n_noise("heldout"), s)[0]
     first_conf, second_conf = d1.confirmed[p.first], (d2.confirmed.get(second) if second
@@ -163,7 +166,7 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
                       f"held-back E {g['heldout_before']:.4g} -> {g['heldout_after']:.4g}"
                       + remaining_text(again.ssr_heldout, d1.obs.n_noise("heldout"), s,
                                        f"{p.first} and {second}", pair=True))
-    base_ho = decision.per_well_heldout(d1.case, d1.base.responses)
+    base_ho = heldout_per_well(d1.case, d1.base.responses)
     doc["per_well_response"] = {"extension": f"{p.first} + {second}", "rows":
                                 decision.per_well_table(
                                     base_sc["per_well_response"], base_ho,
@@ -176,9 +179,9 @@ def remaining_text(ssr_heldout: float, n_heldout: int, s, causes: str,
                    pair: bool = False) -> str:
     """A sentence for the verdict when the model with the accepted ``causes`` still misses the
     held-back history beyond noise (whitened SSR over the noise line of
-    :func:`hmcore.diagnosis.decision.heldout_noise_line`, under round 1's noise model): the
-    answer explains part of the data, not all of it. Empty otherwise."""
-    line = decision.heldout_noise_line(n_heldout, s)
+    :func:`hmcore.diagnosis.confirmation.heldout_noise_line`, under round 1's noise model):
+    the answer explains part of the data, not all of it. Empty otherwise."""
+    line = heldout_noise_line(n_heldout, s)
     if not n_heldout or ssr_heldout <= line:
         return ""
     more = ("a third cause, or other shapes for these two (hmflow accepts two at most)" if pair

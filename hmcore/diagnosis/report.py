@@ -1,15 +1,21 @@
-"""The diagnosis report: ranking table, gain table, residual findings (Markdown) and plots."""
+"""The diagnosis report: ranking table, gain table, residual findings (Markdown), plots, and
+the files of a diagnosis (``diagnosis.json``, ``report.md``, one PNG per named well)."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from hmcore.diagnosis.decision import statistic_text
+from hmcore.model.case import Case
+from hmcore.ordering import natural_key
 from hmcore.scoring.observations import ObservationSet
+from storage.jsonable import to_jsonable
 
 PLOTTED = ("WOPR", "WWPR", "WGPR", "WBHP", "WGOR", "WWCT")
 LABELS = {"WOPR": "oil rate", "WWPR": "water rate", "WGPR": "gas rate", "WBHP": "BHP",
@@ -183,7 +189,7 @@ def markdown_report(doc: dict, level: int = 1) -> str:
 def plot_wells(obs: ObservationSet, base: pd.DataFrame, extended: pd.DataFrame | None,
                wells: list[str], out_dir: Path, label: str = "") -> list[Path]:
     """One PNG per well: observed vs calibrated vs extended BHP, GOR and water cut."""
-    import matplotlib
+    import matplotlib  # slow to import, and only a report with plots needs it
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -229,3 +235,39 @@ def plot_wells(obs: ObservationSet, base: pd.DataFrame, extended: pd.DataFrame |
         plt.close(fig)
         out.append(path)
     return out
+
+
+def plotted_wells(doc: dict, case: Case) -> list[str]:
+    """The wells the answer names: the first cause's and, when it is `unexplained` (or a
+    partial answer led by it), the accepted causes' too; every well when they name none."""
+    wells: list[str] = []
+    for c in doc["causes"]:
+        if c["kind"] != "none":
+            wells += list(c["wells"])
+            break
+    for a in doc.get("accepted") or []:
+        wells += list(a.get("wells") or [])
+    return (sorted(set(wells), key=natural_key) if wells
+            else sorted(case.info.wells, key=natural_key))
+
+
+def write_report(out_dir: Path, doc: dict, case: Case, obs: ObservationSet,
+                 base: pd.DataFrame | None, extended: pd.DataFrame | None,
+                 plots: bool = True) -> dict[str, Any]:
+    """Write ``diagnosis.json`` and ``report.md`` of ``doc`` into ``out_dir`` and, with
+    ``plots``, the residual plots of :func:`plotted_wells` (observed, with the noise model
+    ``obs``, against the calibrated responses ``base`` and the extended ones ``extended``).
+    Sets ``doc["plots"]`` (their file names); returns the paths written."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pngs = []
+    if plots:
+        shown = doc["per_well_response"]["extension"]
+        pngs = plot_wells(obs, base, extended, plotted_wells(doc, case), out_dir,
+                          label=shown or "")
+    doc["plots"] = [p.name for p in pngs]
+    (out_dir / "diagnosis.json").write_text(
+        json.dumps(to_jsonable(doc, "diagnosis.json"), indent=2))
+    (out_dir / "report.md").write_text(markdown_report(doc))
+    return {"diagnosis": out_dir / "diagnosis.json", "report": out_dir / "report.md",
+            "plots": pngs}

@@ -26,8 +26,10 @@ from typing import Any, Callable
 
 from hmcore.model.case import Case
 from hmcore.diagnosis import forward, origins
+from hmcore.diagnosis.budget import budget_problem
+from hmcore.diagnosis.runs import EvaluateBatch, Run
 from hmcore.diagnosis.settings import DiagnosisSettings
-from hmcore.diagnosis.workflow import Diagnosis, EvaluateBatch, Run, budget_problem
+from hmcore.diagnosis.workflow import Diagnosis
 
 OnStep = Callable[[str, Diagnosis], None]
 STEP_NAMES = ("calibration", "residuals", "ranking", "extension", "recalibration")

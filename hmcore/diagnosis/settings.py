@@ -19,114 +19,120 @@ from hmcore.errors import Problem
 
 @dataclass(frozen=True)
 class DiagnosisSettings:
-    """Knobs of a diagnosis. Thresholds are in chi-square units of the whitened residuals."""
+    """Knobs of a diagnosis.
+
+    Units: *chi2* is the chi-square unit of the whitened residuals (residual / noise sigma,
+    time correlation removed), in which one free parameter fitting pure noise removes 1 on
+    average; *scaled* is the recalibration's coordinate, [-1, 1] over a parameter's range (log
+    scale for factors, :class:`hmcore.diagnosis.recalibrate.Coordinates`). Which defaults were
+    measured, on what, and what was tried instead: docs/diagnosis.md, "Where the settings'
+    values come from"."""
 
     kinds: tuple[str, ...] = KINDS
     """Families of candidate extensions searched (see :data:`hmcore.diagnosis.KINDS`)."""
     confirm_top: int = 4
-    """Leading candidates confirmed by an actual recalibration."""
+    """Candidates recalibrated at least (count), the best score tests first."""
     confirm_max: int = 6
+    """Candidates recalibrated at most (count) when the leader's chi2 is at least
+    ``weak_lead``."""
     confirm_close: float = 0.75
-    """... and more, up to ``confirm_max``, while their score test reaches this share of the
-    leader's: when the globals absorbed a strong effect, several candidates score alike and
-    the linear ranking cannot order them (PUNQ-S3, layer 5 x3.3: chi2 97, 95, 94, 77.3 and
-    the hidden layer 77.0)."""
+    """Beyond ``confirm_top``, a candidate is recalibrated too (up to ``confirm_max``) while
+    its score test reaches this share (fraction) of the leader's chi2: when the globals
+    absorbed a strong effect, several candidates score alike and the linear ranking cannot
+    order them. Measured."""
     weak_lead: float = 50.0
+    """When the leader's score test removes less than this (chi2), every screened candidate
+    is recalibrated, up to ``confirm_weak_max``: near the line the linear ranking cannot be
+    trusted (a response that bends, several candidates the globals absorb alike). Measured."""
     confirm_weak_max: int = 10
-    """When the leading candidate's score test removes less than ``weak_lead``, every screened
-    candidate is recalibrated, up to ``confirm_weak_max``: near the line the linear ranking
-    cannot be trusted (a response that bends, several candidates the globals absorb alike).
-    PUNQ-S3, layer 1 x3.6: the globals absorb all but chi2 19 of it, the score test puts it 9th
-    (9.5, the leader 25.6), and the four recalibrated candidates fit alike."""
+    """Candidates recalibrated at most (count) under a weak lead."""
     false_alarm: float = 0.003
-    """Family-wise false-alarm rate of the noise lines ``chi2_threshold`` and ``fit_threshold``
-    when they are not given: under the noise model the whitened residuals are independent
-    standard normal, so the SSR one more parameter removes from pure noise is chi-square with
-    one degree of freedom, and the line over ``K`` candidates is the chi-square(1) quantile at
-    ``false_alarm / K`` (Bonferroni; :func:`noise_line`). ``K`` is the diagnosis's own count:
-    the candidates of its kinds and its dated ones. 0.003 was set on the synthetic controls and
-    PUNQ-S3's measured history, where the largest of ~30 candidates scored 2-4: over 30
-    candidates the line is chi2 15.1 (the fixed 15 of before), a margin of about four for the
-    imperfect noise model; with ``--kinds well_skin`` (4 candidates) it is 11.4."""
+    """Family-wise false-alarm rate (probability) of the noise lines ``chi2_threshold`` and
+    ``fit_threshold`` when they are not given: the line over K candidates is the
+    chi-square(1) quantile at ``false_alarm / K`` (Bonferroni, :func:`noise_line`), K the
+    diagnosis's own count (:func:`hmcore.diagnosis.budget.count_tests`): 15.1 over 30
+    candidates, 11.4 over 4. Measured."""
     chi2_threshold: float | None = None
-    """A candidate is beyond noise when its score test removes more than this (chi2 units);
-    None: derived (:func:`noise_line` of the diagnosis's candidates at ``false_alarm``)."""
+    """A candidate is beyond noise when its score test removes more than this (chi2); None:
+    derived (:func:`noise_line` of the diagnosis's candidates at ``false_alarm``)."""
     screen_threshold: float = 8.0
-    """Candidates whose score test removes at least this much (but maybe less than
-    ``chi2_threshold``) are recalibrated too: the score test is linear in the new parameter, and
-    a strong effect seen through a curved response (a layer's permeability, a baffle) can land
-    just under the line. Such a candidate ranks above ``none`` only when its recalibration
-    lowers the fitted SSR by more than ``fit_threshold``. In the synthetic controls and on
-    PUNQ-S3's measured history no candidate reached 5, so the screen costs them nothing."""
+    """Candidates whose score test removes at least this much (chi2), even under
+    ``chi2_threshold``, are recalibrated too: the score test is linear in the new parameter,
+    and a strong effect seen through a curved response (a layer's permeability, a baffle) can
+    land just under the line. Such a candidate ranks above ``none`` only when its
+    recalibration lowers the fitted SSR by more than ``fit_threshold``. Measured."""
     fit_threshold: float | None = None
-    """A confirmed extension must lower the fitted SSR by more than this; None: derived, the
-    same line as ``chi2_threshold`` (a likelihood-ratio test of one more parameter). A dated
-    cause (two: its factor and its date) must pass the chi-square(2) line at the same tail
-    probability (:func:`hmcore.diagnosis.decision.fit_line`)."""
+    """A recalibrated extension must lower the fitted SSR by more than this (chi2); None:
+    derived, the same line as ``chi2_threshold`` (a likelihood-ratio test of one more
+    parameter). A dated cause (its factor and its date) must pass the chi-square(2) line at
+    the same tail probability (:func:`hmcore.diagnosis.confirmation.fit_line`)."""
     partial_share: float = 0.5
-    """A majority: the verdict says a selected cause is partial when it removes less than this
-    share of the fitted misfit beyond noise (the calibrated model's SSR less its noise
-    expectation; the decision is not changed: a partial fault is caught that way too). When it
-    removes less than this share of the held-back and of the fitted misfit beyond noise, the
-    model with it still misses the held-back history beyond noise, and round 2 finds residuals
-    no family explains, the answer's lead is ``unexplained`` and the cause a partial answer
-    listed second (:func:`hmcore.diagnosis.decision.lead_unexplained`)."""
+    """Share (fraction) of the misfit beyond noise (the calibrated model's SSR less its noise
+    expectation) a selected cause must remove to be the whole answer: below it the verdict
+    says the cause is partial (the selection is not changed). When the cause removes less
+    than this share of the held-back and of the fitted misfit beyond noise, the model with it
+    still misses the held-back history beyond noise, and round 2 finds residuals no family
+    explains, ``unexplained`` leads and the cause is listed second
+    (:func:`hmcore.diagnosis.decision.lead_unexplained`)."""
     derived_lines: tuple[str, ...] = ()
     """The lines derived from ``false_alarm`` rather than given (set on construction; a
     diagnosis derives them again for its own count of candidates, :func:`with_lines`)."""
     heldout_threshold: float = 6.0
-    """... and the held-back SSR by more than this (and the held-back E must drop). When the
-    calibrated model already fits the held-back history within noise (its whitened SSR under
-    the chi-square mean + ``quiet_sd`` standard deviations), the held-back data carry nothing
-    to confirm: the extension must then lower the held-back E and not raise the held-back SSR
-    by more than this."""
+    """The held-back rule (:func:`hmcore.diagnosis.confirmation.heldout_confirms`): an
+    extension must lower the held-back whitened SSR by more than this (chi2), and the
+    held-back E. When the calibrated model already fits the held-back history within noise
+    (its SSR under the chi-square mean + ``quiet_sd`` standard deviations) it must lower the
+    held-back E and not raise the held-back SSR by more than this. Measured."""
     quiet_sd: float = 3.0
+    """Standard deviations of the held-back SSR's chi-square distribution: above its mean by
+    more than this the held-back history is missed beyond noise, and a drop by more than this
+    is decisive (:func:`hmcore.diagnosis.confirmation.heldout_noise_line`,
+    :func:`hmcore.diagnosis.confirmation.heldout_decisive_drop`). Measured."""
     heldout_e_slack: float = 0.25
-    """When the held-back whitened SSR drops decisively (see
-    :func:`hmcore.diagnosis.decision.heldout_decisive_drop`) the held-back E may rise by up to
-    this share and the held-back history still confirms: E weights every point alike whatever
-    its noise, and noisy responses can raise it for the truth itself (PUNQ-S3, aquifer 2 x9.2:
-    the truth's held-back E 11 % above the calibrated base's; synthetic fault seed 12: the
-    hidden plane +2 %)."""
+    """When the held-back whitened SSR drops decisively, the held-back E may rise by up to
+    this share (fraction) and the held-back history still confirms: E weights every point
+    alike whatever its noise, and noisy responses can raise it for the truth itself.
+    Measured."""
     unexplained_alpha: float = 0.05
-    """When no candidate fits the fitted history beyond noise, a residual finding of the
-    calibrated model (a well's response, over a period, biased or drifting) still beyond noise
-    at this family-wise false-alarm rate makes the answer ``unexplained``, localised, instead
-    of ``none``: its |z| must exceed the Bonferroni line ``norm.isf(alpha / (2 m))`` over the
-    m bias and trend tests made (see :func:`hmcore.diagnosis.decision.localise`)."""
+    """Family-wise false-alarm rate (probability) of a residual finding of the calibrated
+    model (a well's response over a period, biased or drifting): when nothing is accepted, a
+    finding beyond it makes the answer ``unexplained``, localised, instead of ``none``; its |z|
+    must exceed ``norm.isf(alpha / (2 m))`` over the m bias and trend tests made
+    (:func:`hmcore.diagnosis.decision.localise`)."""
     max_causes: int = 2
-    """Causes accepted at most, by greedy forward selection (1 or 2): when the first round
-    accepts a cause - or finds one that fits the fitted history beyond noise but that the
-    held-back history vetoes - a second round puts it in the model, calibrates, ranks and
-    recalibrates again (:mod:`hmcore.diagnosis.forward`). A vetoed first cause is accepted
-    only with a second one that makes the pair predict the held-back history."""
+    """Causes accepted at most (1 or 2), by greedy forward selection: when round 1 accepts a
+    cause - or finds one that fits the fitted history beyond noise but that the held-back
+    history vetoes - round 2 puts it in the model and diagnoses again
+    (:mod:`hmcore.diagnosis.forward`). A vetoed first cause is accepted only with a second one
+    that makes the pair predict the held-back history."""
     later_origins: tuple[float, ...] = (0.875,)
-    """When a diagnosis accepts nothing and its calibrated model misses the held-back history
-    beyond noise, it diagnoses again with the fitted window ending at the first of these
-    fractions of the record (first to last observed day) that lies beyond the current end,
-    and so on to the next while no window names a cause (a rolling origin, in increasing
-    order; :mod:`hmcore.diagnosis.origins`; empty: never)."""
+    """Ends of the later fitted windows (fractions of the record, first to last observed day,
+    increasing): when a diagnosis accepts nothing and its calibrated model misses the
+    held-back history beyond noise, it diagnoses again with the window ending at the first of
+    these beyond the current end, and so on while no window names a cause (a rolling origin,
+    :mod:`hmcore.diagnosis.origins`; empty: never)."""
     later_min_heldout: int = 20
-    """... leaving at least this many observed points to hold back."""
+    """Observed points a later window must leave to hold back (count)."""
     dated_max: int = 2
-    """Wells whose productivity change the ranking dates (``productivity_change``): at most
-    this many dated candidates, one probe run each (see :mod:`hmcore.diagnosis.dating`)."""
+    """Dated candidates (``productivity_change``) the ranking adds at most (count of wells),
+    one probe run each (:mod:`hmcore.diagnosis.dating`)."""
     region_shifts: int = 2
-    """Regional-permeability candidates beyond noise (the strongest first, at most this many
-    wells) whose box the ranking also tries moved by its half width in i, j or both - the
-    well at an edge or a corner of the box, 8 more probe runs a well - for a region beside a
-    well rather than centred on it (see :func:`hmcore.diagnosis.extensions.shifted_regions`;
-    0: never). They count as candidates in the noise lines whether or not they are run, and
-    are run only when the budget leaves room for them."""
+    """Wells (count, the strongest regional candidates beyond noise first) whose box the
+    ranking also tries moved by its half width in i, j or both - the well at an edge or a
+    corner of the box, 8 more probe runs a well - for a region beside a well rather than
+    centred on it (:func:`hmcore.diagnosis.extensions.shifted_regions`; 0: never). They count
+    as candidates in the noise lines whether or not they are run, and are run only when the
+    budget leaves room for them."""
     dating_alpha: float = 0.05
-    """A start date is kept when its chi2 gain over the undated change reaches what noise
-    makes with this probability over the dates scanned (Bonferroni, chi-square with 1 degree
-    of freedom: :func:`noise_line` over the dates)."""
+    """Family-wise false-alarm rate (probability) of a start date: a date is kept when its
+    chi2 gain over the undated change reaches what noise makes with this probability over the
+    dates scanned (chi-square(1), Bonferroni: :func:`noise_line` over the dates)."""
     dating_min_after: int = 6
-    """A date is scanned when the well has at least this many fitted points after it."""
+    """A date is scanned when the well has at least this many fitted points after it
+    (count)."""
     tie_band: float = 10.0
-    """Recalibrated candidates whose fitted SSR is within this of the best fit the fitted
-    history cannot tell apart: the held-back history orders them."""
+    """Recalibrated candidates whose fitted SSR is within this (chi2) of the best fit, which
+    the fitted history cannot tell apart: the held-back history orders them. Measured."""
     calibration: LMSettings = field(default_factory=lambda: LMSettings(
         fd_step=0.1, max_iter=10, max_evaluations=40, trials=2, ftol=0.02))
     """Phase 1 of the calibration (weighted least squares before the noise is refined)."""
@@ -140,58 +146,58 @@ class DiagnosisSettings:
         fd_step=0.1, max_iter=3, max_evaluations=12, trials=1, ftol=0.005))
     """The best recalibrated candidates continue from a fresh finite-difference Jacobian."""
     refine_top: int = 2
+    """Recalibrated candidates refined at most (count): the best fits beyond noise."""
     restart: LMSettings = field(default_factory=lambda: LMSettings(
         fd_step=0.1, max_iter=6, max_evaluations=18, trials=1, ftol=0.005))
-    """When the calibration pressed global parameters against their bounds, they have absorbed
-    what an extension may explain better, and a warm-started recalibration rarely leaves that
-    basin: the best recalibrated candidates are then also recalibrated from the base model as
-    given (see :meth:`hmcore.diagnosis.workflow.Diagnosis._restart`)."""
+    """The restart from the deck's values (:mod:`hmcore.diagnosis.restart`): when the
+    calibration pressed globals against their bounds, or the held-back history vetoes the best
+    fits, they may have absorbed what an extension explains better, and a warm-started
+    recalibration rarely leaves that basin."""
     near_bound: float = 0.05
-    """Scaled distance to a bound that counts as "at the bound" for the restart (negative: no
-    restarts)."""
+    """Distance to a bound (scaled) that counts as "at the bound" for the restart (negative:
+    no restarts on bounds)."""
     open_end: float = 0.01
-    """The verdict warns that a selected cause stopped at an end of its range (within this
-    scaled distance) that is not a physical limit of its family: it may stand in for
-    something it does not describe (:func:`hmcore.diagnosis.extensions.open_end`; negative:
-    never). A warning, not a veto: making it a veto was tried on the generator sweep
-    (docs/diagnosis.md) and gave a worse model, not a better answer."""
+    """The verdict warns that a selected cause stopped within this distance (scaled) of an end
+    of its range that is not a physical limit of its family: it may stand in for something it
+    does not describe (:func:`hmcore.diagnosis.extensions.open_end`; negative: never). A
+    warning, not a veto: a veto was tried and gave worse models."""
     restart_top: int = 2
-    """This many recalibrated candidates (best fits first) are restarted (each costs about 20
-    runs; on PUNQ-S3 the hidden aquifer and layer were the best warm fits), and with them every
-    other one whose warm fit is within ``tie_band`` of the best and beyond noise (the fitted
-    history cannot tell those apart, so each gets the same chance from the deck's values;
-    PUNQ-S3, a baffle in layer 2: warm fits 431.9, 432.1, 434.1 and the hidden layer 438.0)."""
+    """Recalibrated candidates restarted (count, best fits first), and with them every other
+    one whose warm fit is within ``tie_band`` of the best and beyond noise (the fitted history
+    cannot tell those apart, so each gets the same chance from the deck's values). A restart
+    costs about 20 runs. Measured."""
     restart_max: int = 4
-    """At most this many restarts (each costs about 20 runs)."""
+    """Restarts at most (count)."""
     restart_on_veto: bool = True
     """Also restart, when no global is at its bound, the recalibrated candidates that fit
-    beyond noise but that the held-back history vetoes (see
+    beyond noise but that the held-back history does not plainly confirm (see
     :func:`hmcore.diagnosis.refit.veto_restart_choice`)."""
     restart_grid: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
-    """Candidate values (scaled coordinates) tried with the globals at the deck's values before
-    each restart; the best (or the candidate's recalibrated value) starts it."""
+    """Candidate values (scaled) tried with the globals at the deck's values before each
+    restart; the best (or the candidate's recalibrated value) starts it."""
     restart_prior_sd: float = 0.5
-    """The restart minimises the fitted SSR plus a Gaussian prior on the globals at the deck's
-    values with this standard deviation (scaled coordinates; 0.5 = a quarter of the range):
-    "the extension on the model as given, the globals moved as little as the data need".
-    Without it the restart drifts back into the valley the globals made (PUNQ-S3, aquifer 1
-    x5.3: the restart ended at SSR 462 with permz at its bound again)."""
+    """Standard deviation (scaled; 0.5 = a quarter of the range) of the Gaussian prior on the
+    globals at the deck's values that a restart adds to the fitted SSR: the extension on the
+    model as given, the globals moved as little as the data need; without it a restart drifts
+    back into the valley the globals made. Measured."""
     restart_slack: float = 5.0
     """A restart counts when its fitted SSR + prior is below the warm start's (prior of the
-    warm start's globals) and its fitted SSR is at most this much above the warm start's: of
-    fits the fitted history cannot tell apart (chi2 units), the one closer to the model as
-    given."""
+    warm start's globals) and its fitted SSR at most this much (chi2) above the warm start's:
+    of fits the fitted history cannot tell apart, the one closer to the model as given."""
     line_search: tuple[float, ...] = (0.5, 1.0, 1.5)
     """Multiples of the score test's linear step tried along each leading candidate's joint
-    direction (see :func:`hmcore.diagnosis.refit.joint_direction`) before its recalibration;
-    the best point starts it."""
+    direction (see :func:`hmcore.diagnosis.refit.joint_direction`) before its
+    recalibration; the best point starts it."""
     global_fd_step: float = 0.1
+    """Finite-difference step (scaled) of the globals' Jacobian the ranking takes."""
     reuse_jacobian_within: float = 0.15
     """Reuse the calibration's last finite-difference Jacobian of the globals for the ranking
-    when the calibration moved less than this (scaled coordinates) since computing it."""
+    when the calibration moved less than this (scaled, in every global) since computing it."""
     heldout_fraction: float = 0.25
-    """Held back when the case sets no history_end_days: this share of the record."""
+    """Share (fraction) of the record held back when the case sets no
+    ``history_end_days``."""
     plots: bool = True
+    """Write the residual plots (one PNG per named well) with the report."""
     polish_given: bool = True
     """Polish a given calibrated vector (e.g. a campaign's best) with phase 2 of the
     calibration, so that an extension's gain is not the globals' unfinished fit."""
@@ -201,7 +207,7 @@ class DiagnosisSettings:
     """Cap on simulator calls, every one counted (None: as many as the steps need). The
     ranking needs one run per candidate (+ one per global parameter) and is reserved first;
     the calibration and the recalibrations share the rest (see
-    :func:`hmcore.diagnosis.workflow.minimum_runs`)."""
+    :func:`hmcore.diagnosis.budget.minimum_runs`)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "kinds", tuple(self.kinds))
@@ -245,16 +251,16 @@ class DiagnosisSettings:
 
 
 DEFAULT_TESTS = 30
-"""About the candidates a full search of a small field has (the synthetic case had 28 and 2
-dated when it was set; 30 and 2 since the relative-permeability factors): the count the noise
-lines assume until a diagnosis counts its own."""
+"""About the candidates a full search of a small field has (count): the one the noise lines
+assume until a diagnosis counts its own (see docs/diagnosis.md, "Where the settings' values
+come from")."""
 
 
 def noise_line(n_tests: int, false_alarm: float) -> float:
     """The chi2 a one-parameter extension removes from pure noise with probability at most
     ``false_alarm`` over ``n_tests`` candidates: the chi-square(1) quantile at
     ``false_alarm / n_tests`` (Bonferroni)."""
-    from scipy.stats import chi2
+    from scipy.stats import chi2  # slow to import: only when needed
 
     return float(chi2.isf(false_alarm / max(int(n_tests), 1), 1))
 

@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from hmcore.eclipse.cells import MILLIDARCY_M2, REGION_KEYWORDS, CellProperties
-from hmcore.eclipse.lexer import include_target, split_blocks
-from hmcore.errors import CaseError, Problem
 from hmcore.eclipse.history import History, read_history
 from hmcore.eclipse.includes import resolve_include
+from hmcore.eclipse.lexer import include_target, split_blocks
+from hmcore.errors import CaseError, Problem
 
 UNIT_SYSTEMS = ("METRIC", "FIELD", "LAB", "PVT-M")
 SECTION_NAMES = ("RUNSPEC", "GRID", "EDIT", "PROPS", "REGIONS", "SOLUTION", "SUMMARY", "SCHEDULE")
@@ -199,11 +199,10 @@ def _redirect_fd1():
 
 
 def _parse(path: Path):
+    import opm.io
     from opm.io.ecl_state import EclipseState
     from opm.io.parser import ParseContext, Parser
     from opm.io.schedule import Schedule
-
-    import opm.io
 
     warnings: list[str] = []
     try:

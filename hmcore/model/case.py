@@ -2,7 +2,6 @@
 
 Read from TOML and validated with pydantic; every problem in the file, the deck and the
 observed history is collected and raised together as one :class:`CaseError`::
-
     [case]
     name = "punqs3"
     deck = "PUNQS3.DATA"              # relative to this file, or absolute
@@ -51,8 +50,8 @@ observed history is collected and raised together as one :class:`CaseError`::
 from __future__ import annotations
 
 import tomllib
-from datetime import date, datetime
 from dataclasses import dataclass
+from datetime import date, datetime
 from pathlib import Path
 from typing import Literal
 
@@ -60,14 +59,31 @@ import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from hmcore.eclipse.deck_info import DeckInfo
-from hmcore.errors import CaseError, Problem
 from hmcore.eclipse.history import controlled_mask
+from hmcore.errors import CaseError, Problem
 from hmcore.model.observed import inspect_observed
 from hmcore.model.parameters import Parameter, ParameterSpace, reference_parameters
+from hmcore.model.validation import (
+    OPM_BACKENDS,
+    did_you_mean,
+    parameter_problems,
+    simulator_problems,
+)
 from hmcore.simulation.responses import QUANTITIES
 
 BUILTIN_CASES = ("synthetic",)
 """Case names that stand for a case hmflow writes itself (:mod:`hmcore.cases` resolves them)."""
+HELD_BACK_FRACTION = 0.25
+"""The share of the record held back from fitting when nothing states where the fitted history
+ends (a case without ``history_end_days``, ``hmflow init``'s suggestion, the generated cases):
+the last quarter, so the fit is judged on what it did not see."""
+
+
+def default_history_end(first_day: float, last_day: float,
+                        held_back: float = HELD_BACK_FRACTION) -> float:
+    """The day the fitted history ends when none is stated: the last ``held_back`` share of
+    ``[first_day, last_day]`` (days since START) is held back."""
+    return float(first_day) + (1.0 - held_back) * (float(last_day) - float(first_day))
 
 
 class _Strict(BaseModel):
@@ -316,12 +332,10 @@ def load_case_file(case: str | Path) -> Case:
     backend = (data.get("simulator") or {}).get("backend") if isinstance(
         data.get("simulator"), dict) else None
     if isinstance(backend, str):  # checked even when other keys are wrong
-        from hmcore.model.validation import simulator_problems
 
         problems.extend(simulator_problems(backend, f"{path} key 'simulator.backend'"))
     processes = (data.get("simulator") or {}).get("processes") if isinstance(
         data.get("simulator"), dict) else None
-    from hmcore.model.validation import OPM_BACKENDS
 
     if (isinstance(processes, int) and processes > 1
             and (backend if isinstance(backend, str) else "opm") in OPM_BACKENDS):
@@ -335,7 +349,6 @@ def load_case_file(case: str | Path) -> Case:
         where = f"{path} [[parameters]]"
         deck_problems = _check_parameters(params, info, where)
         problems.extend(deck_problems)
-        from hmcore.model.validation import parameter_problems
 
         clean = [p for p in params if not any(x.where == f"{where} '{p.name}'"
                                               for x in deck_problems)]
@@ -440,7 +453,6 @@ _SECTIONS = {"case": CaseSection, "misfit": MisfitSettings, "simulator": Simulat
 
 def _near_key(key: str) -> str:
     """' (did you mean 'case.history_end_days'?)' for a mistyped key."""
-    from hmcore.model.validation import did_you_mean
 
     parts = key.split(".")
     if len(parts) == 1:
@@ -527,8 +539,6 @@ def _check_observed_against_deck(obs: pd.DataFrame, info: DeckInfo, path: Path) 
 
 
 def _near(unknown, known) -> str:
-    from hmcore.model.validation import did_you_mean
-
     return did_you_mean(unknown[0], known) if len(unknown) == 1 else ""
 
 

@@ -28,11 +28,13 @@ import pandas as pd
 import tomlkit
 
 from hmcore.eclipse.deck_info import DeckInfo
-from hmcore.errors import CaseError, Problem
 from hmcore.eclipse.history import WellKind
+from hmcore.errors import CaseError, Problem
+from hmcore.model.case import default_history_end
 from hmcore.model.parameters import MULTIREG_REGIONS, Parameter
-from hmcore.simulation.responses import QUANTITIES
 from hmcore.ordering import natural_key
+from hmcore.simulation.responses import QUANTITIES
+from hmcore.simulation.rsm import read_rsm
 from hmcore.units import DIMENSION_OF, Dimension, convert, deck_unit
 
 OBSERVED_COLUMNS = ["well", "days", "date", "quantity", "value", "units"]
@@ -126,8 +128,6 @@ def _summary(path: Path, info: DeckInfo):
     """(summary, units per key): an RSM file's own units, or None for a binary summary (in
     the deck's units, as the simulator wrote it)."""
     if path.suffix.lower() == ".rsm":
-        from hmcore.simulation.rsm import read_rsm
-
         rsm = read_rsm(path, info.start)
         return rsm, rsm.units
     from opm.io.ecl import ESmry
@@ -244,7 +244,8 @@ def case_toml(start: StartingCase, case_path: Path, observed_path: Path) -> str:
     case["observed"].comment(f"from {start.source}")
     case.add("time_tolerance_days", 30)
     case.add(tomlkit.comment("hold back the last quarter of the record to judge forecasts:"))
-    case.add(tomlkit.comment(f"history_end_days = {round(0.75 * info.end_days):g}"))
+    end = round(default_history_end(0.0, info.end_days))
+    case.add(tomlkit.comment(f"history_end_days = {end:g}"))
     doc.add("case", case)
     params = tomlkit.aot()
     for p in start.parameters:

@@ -27,11 +27,17 @@ from pathlib import Path
 from hmcore.eclipse.deck_info import SECTION_NAMES as SECTIONS
 from hmcore.eclipse.deck_info import DeckInfo
 from hmcore.eclipse.includes import resolve_include
-from hmcore.eclipse.lexer import (Block, expand_repeats, include_target, records, split_blocks,
-                                  tokenize)
+from hmcore.eclipse.lexer import (
+    Block,
+    expand_repeats,
+    include_target,
+    records,
+    split_blocks,
+    tokenize,
+)
+from hmcore.eclipse.tables import width as table_width
 from hmcore.errors import CaseError, Problem
 from hmcore.model.parameters import MULTIREG_REGIONS, Parameter, ParameterSpace
-from hmcore.eclipse.tables import width as table_width
 
 _COMPDAT_SKIN_ITEM = 11
 
@@ -216,7 +222,7 @@ def _set_skin(items: list[str], edit: SetSkin) -> list[list[str]]:
 
 def _rewrite_items(block: Block, edits: list[ItemMultiply], file: Path) -> Block:
     """Records of ``block.keyword`` with the targeted numeric items multiplied."""
-    new_lines = [block.lines[0], f"-- records rewritten by hmflow (item multipliers)\n"]
+    new_lines = [block.lines[0], "-- records rewritten by hmflow (item multipliers)\n"]
     for rec in records(block.body):
         items = expand_repeats(rec)
         for e in edits:

@@ -15,11 +15,17 @@ import string
 from pathlib import Path
 
 from hmcore.eclipse.deck_info import DeckInfo
+from hmcore.eclipse.includes import deck_files
 from hmcore.eclipse.lexer import expand_repeats, records, split_blocks
 from hmcore.errors import CaseError, Problem
-from hmcore.eclipse.includes import deck_files
-from hmcore.model.parameters import (RELPERM_COLUMNS, TABLE_MULTIPLIABLE, Parameter, ParameterKind,
-                               ParameterSpace)
+from hmcore.model.parameters import (
+    RELPERM_COLUMNS,
+    TABLE_MULTIPLIABLE,
+    Parameter,
+    ParameterKind,
+    ParameterSpace,
+)
+from hmcore.model.run_deck import edits_for, render_deck
 
 OPM_BACKENDS = ("", "opm", "opm-flow")
 PLACEHOLDERS = ("deck", "run_dir", "case", "threads", "processes")
@@ -130,7 +136,6 @@ def _render(params, values: dict[str, float], info: DeckInfo, where: str,
             named: Parameter | None = None) -> tuple[str, list[Problem]]:
     """The per-run deck text for ``values`` and the problems of rendering it (named after
     ``named``, else after every parameter rendered)."""
-    from hmcore.model.run_deck import edits_for, render_deck
 
     space = ParameterSpace(parameters=tuple(params))
     at = f"{where} '{named.name}'" if named else f"{where} {[p.name for p in params]}"

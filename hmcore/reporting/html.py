@@ -19,9 +19,10 @@ import pandas as pd
 from jinja2 import Environment, FileSystemLoader, select_autoescape
 from markupsafe import Markup
 
-from hmcore.reporting import figures as figs
-from hmcore.scoring.metrics import well_table
 from hmcore.ordering import natural_key
+from hmcore.reporting import figures as figs
+from hmcore.reporting.paper_tables import paper_tables
+from hmcore.scoring.metrics import well_table
 
 TEMPLATES = Path(__file__).parent / "templates"
 FAN = [("FOPT", "field cumulative oil"), ("FWPT", "field cumulative water"),
@@ -258,8 +259,6 @@ def _forecast(inputs: ReportInputs) -> dict | None:
 
 
 def _paper_tables(inputs: ReportInputs) -> list[dict]:
-    from hmcore.reporting.paper_tables import paper_tables
-
     if inputs.best is None or not inputs.best.get("metrics", {}).get("categories"):
         return []
     heads = {"categories": "Match by category", "wells": "C_match (%) per well and category",

@@ -12,6 +12,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from hmcore.diagnosis.report import markdown_report
+from hmcore.reporting import paper_tables
 from hmcore.scoring.metrics import category_table, ratio_table, well_table
 from storage.jsonable import to_jsonable
 
@@ -24,7 +26,6 @@ def _fmt(v: Any, digits: int = 4) -> str:
 
 def metrics_markdown(metrics: dict, title: str = "Match quality") -> str:
     """The paper's three tables (see :mod:`hmcore.reporting.paper_tables`)."""
-    from hmcore.reporting import paper_tables
 
     return paper_tables.markdown(paper_tables.paper_tables(metrics), title)
 
@@ -79,8 +80,6 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
     else:
         markdown, doc = _campaign_report(campaign, case_doc, table, best, truth)
     if diagnosis is not None:
-        from hmcore.diagnosis.report import markdown_report
-
         markdown += "\n" + markdown_report(diagnosis, level=2)
         sel = diagnosis.get("selected")
         doc["diagnosis"] = {"verdict": diagnosis["verdict"], "gain": diagnosis["gain"],

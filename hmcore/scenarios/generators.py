@@ -59,12 +59,22 @@ import math
 
 import numpy as np
 
+from hmcore.diagnosis.extensions import (
+    FAULT_BOUNDS,
+    KINDS,
+    PERM_BOUNDS,
+    Candidate,
+    build_candidates,
+    critical_room,
+    dated_productivity,
+    shifted_regions,
+    well_column,
+    wells_below,
+)
 from hmcore.eclipse.deck_info import DeckInfo
-from hmcore.diagnosis.extensions import (FAULT_BOUNDS, KINDS, PERM_BOUNDS, Candidate,
-                                         build_candidates, dated_productivity, shifted_regions, well_column, wells_below)
 from hmcore.model.parameters import Parameter, ParameterSpace
-from hmcore.scenarios.effects import HiddenEffect, draw_library_effect
 from hmcore.ordering import natural_key
+from hmcore.scenarios.effects import HiddenEffect, draw_library_effect
 
 GENERATORS = ("partial_fault", "offcentre_region", "relperm_endpoint", "two_kinds", "contact",
               "dated_productivity", "late_productivity", "pvt", "relperm_scaling")
@@ -254,8 +264,6 @@ def _rows_below_critical(info: DeckInfo, table: str) -> bool:
     """Whether the first ``table`` (SWOF / SWFN) has rows below the critical water saturation,
     so that a negative end-point shift changes it (the synthetic deck's starts there: without
     such rows a negative shift is no effect at all)."""
-    from hmcore.diagnosis.extensions import critical_room
-
     return critical_room(info, table) > 1e-3
 
 

@@ -27,14 +27,15 @@ import pandas as pd
 from hmcore.scoring.observations import ObservationSet
 from hmcore.diagnosis.settings import DiagnosisSettings
 from hmcore.eclipse.deck_info import DeckInfo
-from hmcore.model.case import load_case_file
+from hmcore.model.case import default_history_end, load_case_file
 from hmcore.model.run_deck import prepare_run_deck
 from hmcore.diagnosis.recalibrate import (Coordinates, LevenbergMarquardt, LMSettings, Point,
                                          run_lockstep)
 from hmcore.model.parameters import ParameterSpace
 from hmcore.scenarios.effects import HiddenEffect
 from hmcore.scenarios.generators import draw_effects
-from hmcore.scenarios.synthetic import (DECK_NAME, SYNTHETIC_TRUTH, make_fields, noisy_series, render_deck, write_synthetic_case)
+from hmcore.scenarios.synthetic import (DECK_NAME, SYNTHETIC_TRUTH, noisy_series, write_synthetic_case)
+from hmcore.scenarios.synthetic_deck import make_fields, render_deck
 from hmcore.scoring.noise import PUNQ_NOISE, NoiseModel
 from hmcore.scoring.evaluation import evaluate, score_responses
 from hmcore.simulation.responses import read_responses
@@ -131,7 +132,8 @@ def write_hidden_deck_case(dest: Path, deck: Path, seed: int, *, truth: dict[str
     deck = Path(deck).resolve()
     info = DeckInfo.inspect(deck)
     if history_end_days is None:
-        history_end_days = round(0.75 * (info.end_days if end_days is None else end_days))
+        history_end_days = round(default_history_end(
+            0.0, info.end_days if end_days is None else end_days))
     space = space or ParameterSpace.reference()
     effects = [effect] if effect is not None else []
     if effect is None and kind is not None:

@@ -5,11 +5,11 @@ within :data:`~hmcore.scenarios.generators.START_TOLERANCE_DAYS` of the start), 
 
 from __future__ import annotations
 
-
 from hmcore.diagnosis.decision import heldout_decisive_drop
 from hmcore.diagnosis.settings import DiagnosisSettings
 from hmcore.scenarios.effects import HiddenEffect
 from hmcore.scenarios.generators import START_TOLERANCE_DAYS
+
 
 # ----------------------------------------------------------------------------- scoring a finding
 def visible(signal: dict | None) -> bool:

@@ -17,17 +17,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from hmcore.scoring.alignment import align
+from hmcore.errors import FailureKind, SimulationError
 from hmcore.model.case import Case
 from hmcore.model.run_deck import prepare_run_deck
-from hmcore.errors import FailureKind, SimulationError
+from hmcore.scoring.alignment import align
 from hmcore.scoring.metrics import compute_metrics
 from hmcore.scoring.misfit import category_ranges, misfit
-from hmcore.scoring.record_format import failure_of
 from hmcore.scoring.physics import check_physics, check_responses
+from hmcore.scoring.record_format import failure_of
+from hmcore.simulation import simulator as simulators  # make_simulator looked up per call
 from hmcore.simulation.responses import last_time, read_responses
 from hmcore.simulation.simulator import Simulator
-
 
 SCORING_VERSION = 2
 """The rules a call is scored by (misfit, metrics, physics checks). A campaign is bound to the
@@ -101,8 +101,6 @@ class Evaluation:
 
 def simulator_for(case: Case) -> Simulator:
     """The case's simulator: its backend, timeout, threads and processes per run, stop step."""
-    from hmcore.simulation import simulator as simulators  # looked up when called (tests replace it)
-
     return simulators.make_simulator(case.simulator.backend, case.simulator.timeout_s,
                                      case.simulator.threads, case.stop_step,
                                      case.simulator.processes)

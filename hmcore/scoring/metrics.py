@@ -21,8 +21,8 @@ from enum import Enum
 import numpy as np
 import pandas as pd
 
-from hmcore.scoring.misfit import DIAGNOSTIC, PRIMARY
 from hmcore.ordering import natural_key
+from hmcore.scoring.misfit import DIAGNOSTIC, PRIMARY
 
 EPS = 1e-12
 CATEGORIES = {"oil": PRIMARY["oil"], "water": PRIMARY["water"], "gas": PRIMARY["gas"],

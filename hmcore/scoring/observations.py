@@ -18,11 +18,22 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from hmcore.model.case import HELD_BACK_FRACTION, default_history_end
 from hmcore.scoring.alignment import nearest
-from hmcore.scoring.noise import (AFTER_BREAKTHROUGH_DEFAULT, GAS_BREAKTHROUGH_RATIO, MAX_RHO,
-                                  OIL_RATE_SIGMA_MIN, OIL_RATE_SIGMA_REL, RESPONSE_OF, SIGMA_FLOOR,
-                                  WATER_BREAKTHROUGH_SEEN, breakthrough_index, estimate_noise,
-                                  initial_gor)
+from hmcore.scoring.noise import (
+    AFTER_BREAKTHROUGH_DEFAULT,
+    GAS_BREAKTHROUGH_RATIO,
+    MAX_RHO,
+    OIL_RATE_SIGMA_MIN,
+    OIL_RATE_SIGMA_REL,
+    RESPONSE_OF,
+    SIGMA_FLOOR,
+    WATER_BREAKTHROUGH_SEEN,
+    breakthrough_index,
+    estimate_noise,
+    initial_gor,
+)
+
 
 # ============================================================================ observation set
 @dataclass
@@ -43,7 +54,7 @@ class ObservationSet:
 
     # ---------------------------------------------------------------- construction
     @classmethod
-    def from_case(cls, case, heldout_fraction: float = 0.25) -> "ObservationSet":
+    def from_case(cls, case, heldout_fraction: float = HELD_BACK_FRACTION) -> "ObservationSet":
         """Rows of ``case.informative`` (all but history-controlled ones); held back after ``case.history_end_days`` or, when the
         case sets none, the last ``heldout_fraction`` of the record.
 
@@ -53,8 +64,7 @@ class ObservationSet:
         obs = case.informative  # rows a history control fixes tell nothing
         end = case.history_end_days
         if end is None:
-            d0, d1 = float(obs.days.min()), float(obs.days.max())
-            end = d0 + (1.0 - heldout_fraction) * (d1 - d0)
+            end = default_history_end(obs.days.min(), obs.days.max(), heldout_fraction)
         return cls.from_observed(obs, end, case.time_tolerance_days)
 
     @classmethod

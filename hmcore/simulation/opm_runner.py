@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import sys
 
-
 STOP = "--hmflow-stop-step="  # hmflow's own option: stop after this report step
 
 

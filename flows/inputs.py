@@ -1,0 +1,44 @@
+"""The parameter rules of a campaign, a benchmark and a diagnosis: a known method, a budget and
+worker count the method can run with, a known task runner.
+
+The one home of these rules: a flow checks them and returns a Failed state
+(:mod:`flows.refuse`); the command line checks them before it starts Prefect and exits 2. So
+this module imports no Prefect (Prefect reads its settings once, on import, and the command
+line sets them after its input is checked).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from flows.runners import RUNNERS
+from hmcore.calibration.registry import METHODS
+
+
+def as_parameter(name: str) -> str:
+    """A flow parameter spelled as the flow names it (``task_runner``)."""
+    return name
+
+
+def input_problems(agent: str | None = None, budget: int | None = None,
+                   workers: int | None = None, task_runner: str | None = None, *,
+                   spell: Callable[[str], str] = as_parameter) -> list[str]:
+    """Every rule the given parameters break (none given: not checked); [] when they are fine.
+
+    ``spell`` names a parameter as its user gave it: the flow's parameter name by default, an
+    option (``--task-runner``) on the command line. The case file is checked by loading it."""
+    problems = []
+    if agent is not None and agent not in METHODS:
+        problems.append(f"{spell('agent')} must be one of {list(METHODS)}, got {agent!r}")
+    elif agent is not None and budget is not None and workers is not None:
+        # the methods package imports numpy and gymnasium: keeps `hmflow --help` fast
+        from hmcore.calibration.methods import budget_problem
+
+        problem = budget_problem(agent, budget, workers)
+        if problem:
+            problems.append(f"{spell('agent')} {agent}, {spell('budget')} {budget}, "
+                            f"{spell('workers')} {workers}: {problem}")
+    if task_runner is not None and task_runner not in RUNNERS:
+        problems.append(f"{spell('task_runner')} must be one of {list(RUNNERS)}, "
+                        f"got {task_runner!r}")
+    return problems

@@ -1,0 +1,199 @@
+"""scipy's trust-region reflective least squares as an ask/tell solver (the step rule of the
+``lm`` calibration method).
+
+:class:`TrustRegionReflective` is ``scipy.optimize.least_squares(fun, x0, jac, bounds,
+method="trf", x_scale=1.0)`` (linear loss, exact trust-region subproblem by SVD, default
+tolerances) turned inside out: instead of calling ``fun`` and ``jac`` it asks for the points
+and is told their residuals, so that a caller can batch, replay and budget the simulations.
+The algorithm is scipy's ``trf_bounds`` step for step, with scipy's own helpers for the
+arithmetic (``scipy.optimize._lsq``, private to scipy: ``tests/test_least_squares.py`` checks
+that this class proposes the very points ``least_squares`` evaluates), and ``jac`` is the
+forward difference of :mod:`hmcore.calibration.least_squares`:
+
+1. the start point (made strictly feasible, as scipy does), then its Jacobian;
+2. at the current point: the Coleman-Li scaling of the bounds, the SVD of the scaled Jacobian,
+   a step inside the trust region (reflected at a bound it would cross, or along the scaled
+   gradient, whichever the quadratic model likes best), kept strictly inside the box;
+3. a trial point per request: the radius is updated from the ratio of actual to predicted
+   reduction; a worse trial is followed by a shorter one from the same point, a better one is
+   accepted and the Jacobian is computed there (also when a tolerance then ends the descent,
+   as scipy does);
+4. it ends when the scaled gradient, the cost reduction or the step falls below its
+   tolerance (``status`` 1, 2, 3 or 4 as scipy's), or after ``max_nfev`` residual
+   evaluations (``status`` 0; Jacobian runs are not counted, as in scipy).
+
+A failed run (a residual vector of None) at the start or at a trial ends the descent
+(``failed``); in a Jacobian its column is 0. Non-finite residuals at a trial shrink the
+radius, as in scipy.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.linalg import norm
+from scipy.linalg import svd
+from scipy.optimize._lsq.common import (CL_scaling_vector, check_termination, compute_grad,
+                                        in_bounds, make_strictly_feasible,
+                                        solve_lsq_trust_region, update_tr_radius)
+from scipy.optimize._lsq.trf import select_step
+
+from hmcore.calibration.least_squares import AskTellLeastSquares
+
+STATUS = {0: "the residual evaluations allowed are spent",
+          1: "the scaled gradient is below gtol",
+          2: "the cost reduction is below ftol",
+          3: "the step is below xtol",
+          4: "the cost reduction and the step are below ftol and xtol"}
+"""Why a descent ended, by scipy's status number."""
+
+
+class TrustRegionReflective(AskTellLeastSquares):
+    """Bounded trust-region reflective least squares on ``r(u)`` by ask/tell (see the module
+    docstring). ``x``, ``cost`` (half the sum of squares) and ``status`` describe the current
+    point, and the result once ``done``."""
+
+    def __init__(self, u0: np.ndarray, fd_step: float, *, lower: np.ndarray | None = None,
+                 upper: np.ndarray | None = None, max_nfev: int | None = None,
+                 ftol: float = 1e-8, xtol: float = 1e-8, gtol: float = 1e-8):
+        x0 = np.atleast_1d(np.asarray(u0)).astype(float)
+        super().__init__(x0.size, fd_step, lower, upper)
+        if not in_bounds(x0, self.lower, self.upper):
+            raise ValueError(f"the start point {x0.tolist()} is outside the bounds")
+        if max_nfev is not None and max_nfev <= 0:
+            raise ValueError(f"max_nfev must be None or positive, got {max_nfev}")
+        self.x = make_strictly_feasible(x0, self.lower, self.upper)
+        self.max_nfev = max_nfev if max_nfev is not None else 100 * x0.size
+        self.ftol, self.xtol, self.gtol = ftol, xtol, gtol
+        self.f: np.ndarray | None = None
+        self.J: np.ndarray | None = None
+        self.g: np.ndarray | None = None
+        self.cost = math.nan
+        self.nfev = 0
+        self.iteration = 0
+        self.status: int | None = None
+        self.failed = False
+        self.Delta: float | None = None  # trust-region radius (scaled space)
+        self.alpha = 0.0  # Levenberg-Marquardt parameter of the trust-region subproblem
+        self._hat: dict[str, Any] = {}  # the current point's scaled quantities
+        self._trial: dict[str, Any] = {}  # the trial point asked and its step
+        self._pending = [("start", self.x.copy(), None)]
+
+    # ------------------------------------------------------------------ ask
+    def ask(self) -> list[np.ndarray]:
+        """The points to simulate next: one (the start or a trial) or a Jacobian's."""
+        return [] if self.done else [p[1] for p in self._pending]
+
+    @property
+    def jacobian_asked(self) -> bool:
+        """True when the points asked are the finite differences at ``x``."""
+        return bool(self._pending) and self._pending[0][0] == "fd"
+
+    # ------------------------------------------------------------------ tell
+    def tell(self, results: list[tuple[np.ndarray | None, Any]]) -> None:
+        received = self._receive(results)
+        (kind, _, _), p = received[0]
+        if kind == "fd":
+            self.J = self._jacobian(self.f, received)
+            self.g = compute_grad(self.J, self.f)
+            if self.Delta is None:
+                self._begin()
+            else:
+                self.iteration += 1
+            self._iterate()
+        elif p.r is None:
+            self.failed = True
+            self._finish(f"the {kind} point failed to simulate")
+        elif kind == "start":
+            self.f, self.nfev = p.r, 1
+            self.cost = 0.5 * np.dot(self.f, self.f)
+            self._pending = self._fd_requests(self.x)
+        else:
+            self._told_trial(p.r)
+
+    # ------------------------------------------------------------------ the algorithm
+    def _begin(self) -> None:
+        """The initial radius, once the start point and its Jacobian are known."""
+        if not np.all(np.isfinite(self.f)):
+            raise ValueError("Residuals are not finite in the initial point.")
+        v, dv = CL_scaling_vector(self.x, self.g, self.lower, self.upper)
+        self.Delta = norm(self.x / v**0.5)
+        if self.Delta == 0:
+            self.Delta = 1.0
+
+    def _iterate(self) -> None:
+        """An outer iteration at the current point: stop, or prepare the scaled trust-region
+        problem and ask for the first trial."""
+        x, g, f, J = self.x, self.g, self.f, self.J
+        v, dv = CL_scaling_vector(x, g, self.lower, self.upper)
+        g_norm = norm(g * v, ord=np.inf)
+        if g_norm < self.gtol:
+            self.status = 1
+        if self.status is not None or self.nfev == self.max_nfev:
+            self.status = self.status or 0
+            self._finish(STATUS[self.status])
+            return
+        m, n = J.shape
+        d = v**0.5
+        diag_h = g * dv
+        f_augmented = np.zeros(m + n)
+        f_augmented[:m] = f
+        J_augmented = np.empty((m + n, n))
+        J_augmented[:m] = J * d
+        J_augmented[m:] = np.diag(diag_h**0.5)
+        U, s, V = svd(J_augmented, full_matrices=False)
+        self._hat = {"d": d, "diag_h": diag_h, "g_h": d * g, "J_h": J_augmented[:m],
+                     "uf": U.T.dot(f_augmented), "s": s, "V": V.T,
+                     "theta": max(0.995, 1 - g_norm), "m": m, "n": n}
+        self._trial = {"actual_reduction": -1}
+        self._next_trial()
+
+    def _next_trial(self) -> None:
+        """Ask for a trial point from the current one, or end the outer iteration."""
+        h, t = self._hat, self._trial
+        if not (t["actual_reduction"] <= 0 and self.nfev < self.max_nfev):
+            self._end_iteration()
+            return
+        p_h, self.alpha, _ = solve_lsq_trust_region(h["n"], h["m"], h["uf"], h["s"], h["V"],
+                                                    self.Delta, initial_alpha=self.alpha)
+        p = h["d"] * p_h
+        step, step_h, predicted = select_step(self.x, h["J_h"], h["diag_h"], h["g_h"], p, p_h,
+                                              h["d"], self.Delta, self.lower, self.upper,
+                                              h["theta"])
+        x_new = make_strictly_feasible(self.x + step, self.lower, self.upper, rstep=0)
+        t.update(step=step, step_h=step_h, predicted=predicted, x_new=x_new)
+        self._pending = [("trial", x_new.copy(), None)]
+
+    def _told_trial(self, f_new: np.ndarray) -> None:
+        t = self._trial
+        self.nfev += 1
+        step_h_norm = norm(t["step_h"])
+        if not np.all(np.isfinite(f_new)):
+            self.Delta = 0.25 * step_h_norm
+            self._next_trial()
+            return
+        cost_new = 0.5 * np.dot(f_new, f_new)
+        t.update(f_new=f_new, cost_new=cost_new, actual_reduction=self.cost - cost_new)
+        Delta_new, ratio = update_tr_radius(self.Delta, t["actual_reduction"], t["predicted"],
+                                            step_h_norm, step_h_norm > 0.95 * self.Delta)
+        self.status = check_termination(t["actual_reduction"], self.cost, norm(t["step"]),
+                                        norm(self.x), ratio, self.ftol, self.xtol)
+        if self.status is not None:
+            self._end_iteration()
+            return
+        self.alpha *= self.Delta / Delta_new
+        self.Delta = Delta_new
+        self._next_trial()
+
+    def _end_iteration(self) -> None:
+        """Accept a trial that lowered the cost (and ask for the Jacobian there), else iterate
+        again from the same point."""
+        t = self._trial
+        if t["actual_reduction"] > 0:
+            self.x, self.f, self.cost = t["x_new"], t["f_new"], t["cost_new"]
+            self._pending = self._fd_requests(self.x)
+            return
+        self.iteration += 1
+        self._iterate()

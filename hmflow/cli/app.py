@@ -1,0 +1,203 @@
+"""The Typer app of the ``hmflow`` command line and what its commands share: the help texts of
+common options, the command start (Prefect's terminal settings, SIGTERM), and turning bad
+input into exit 2 with every problem on stderr (the user's text printed as it is).
+
+Importing this module changes nothing in the process: Prefect's environment is set when a
+command runs (:func:`_start`), and the modules of hmcore that import pandas or Prefect are
+imported by the commands that use them, so that ``hmflow --help`` starts fast.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import signal
+from collections.abc import Iterable
+from pathlib import Path
+from typing import NoReturn, Optional
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from hmcore.errors import CaseError
+from hmflow.console import prefect_environment
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Batch history matching of reservoir models with OPM Flow.")
+console = Console()
+err_console = Console(stderr=True)
+
+CASE_HELP = "Case TOML file, or the built-in name 'synthetic' (generated on first use)."
+VERBOSE_HELP = ("Also show Prefect's own log lines (INFO: temporary server, flow and task runs); "
+                "without it only its warnings and errors")
+RUNNER_HELP = ("Where the simulator calls run: threads (subprocesses of this process) or dask "
+               "(a Dask cluster: --dask-address, DASK_ADDRESS, else a local one of --workers "
+               "processes); see docs/cluster.md")
+DASK_HELP = "Dask scheduler address, e.g. tcp://head-node:8786 (default: DASK_ADDRESS)"
+KINDS_HELP = ("Families of candidate extensions to search, comma-separated (default all): "
+              "well_skin, regional_permeability, layer_permeability, vertical_permeability, "
+              "aquifer_strength, fault_transmissibility, relative_permeability, "
+              "productivity_change")
+"""Spelled out so that ``--help`` does not import the diagnosis; a test holds it to
+:data:`hmcore.diagnosis.extensions.KINDS`, as ``GENERATORS_HELP`` to the generators."""
+GENERATORS_HELP = ("partial_fault, offcentre_region, relperm_endpoint, relperm_scaling, "
+                   "two_kinds, contact, pvt, dated_productivity, late_productivity")
+DEFAULT_STORAGE = Path("./hmflow-storage")
+
+
+@app.callback()
+def _start() -> None:
+    """Runs before every command (never on import):
+
+    * Prefect's terminal defaults, before Prefect is imported (every command imports it late):
+      no usage telemetry (no ERROR about it on a machine without internet), Prefect's own log
+      lines in the terminal from WARNING up (``--verbose``: all); a user's own settings win -
+      see :func:`hmflow.console.prefect_environment`.
+    * SIGTERM (``kill PID``, a batch system's time limit) stops hmflow as Ctrl-C does: the
+      flow run ends as cancelled, the temporary Prefect server is stopped, and the journal
+      keeps every finished call (the same command resumes). Without this, SIGTERM ended the
+      process at once and left the temporary server running."""
+    prefect_environment()
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        signal.signal(signal.SIGTERM, interrupt)
+
+
+def main() -> None:  # pragma: no cover - console entry
+    app()
+
+
+# ------------------------------------------------------------------------------ bad input
+def refuse(problems: Iterable[str], soft_wrap: bool = False) -> None:
+    """Exit 2 with one line per problem on stderr when there is any; return when none."""
+    problems = list(problems)
+    for p in problems:
+        _say(p, soft_wrap)
+    if problems:
+        raise typer.Exit(2)
+
+
+def fail(problem: str, soft_wrap: bool = False) -> NoReturn:
+    """Exit 2 with one line on stderr."""
+    _say(problem, soft_wrap)
+    raise typer.Exit(2)
+
+
+def _say(problem: str, soft_wrap: bool) -> None:
+    err_console.print(f"[red]x[/] {escape(str(problem))}", highlight=False, soft_wrap=soft_wrap)
+
+
+def print_problems(title: str, problems) -> None:
+    """Every problem on stderr: where, what, fix (the user's text printed as it is, never read
+    as rich markup: '[[parameters]]' stays)."""
+    err_console.print(f"[bold red]{escape(title)}[/] - {len(problems)} problem(s):")
+    for p in problems:
+        err_console.print(f"  [red]x[/] {escape(p.where)}\n      {escape(p.what)}"
+                          + (f"\n      fix: {escape(p.fix)}" if p.fix else ""), highlight=False)
+
+
+def option(name: str) -> str:
+    """A flow parameter spelled as the command line's option: ``task_runner`` ->
+    ``--task-runner``."""
+    return "--" + name.replace("_", "-")
+
+
+def checked_campaign(value: Optional[str]) -> Optional[str]:
+    """A campaign name given on the command line: refused at once (exit 2, the rule stated)
+    when it is empty or could leave the store (``''``, ``../S``, ``a/b``)."""
+    if value is None:
+        return value
+    # storage imports pandas: keeps `hmflow --help` fast
+    from storage import validate_name
+
+    try:
+        return validate_name("campaign", value)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+
+
+def folder(option_name: str, path: Path) -> Path:
+    """A folder option (``--out``, ``--storage``): exit 2 with one line when it names a file
+    or cannot be a path, before anything runs."""
+    try:
+        path = path.expanduser()
+    except RuntimeError as exc:  # ~nosuchuser
+        fail(f"{option_name} {path}: {exc}")
+    if path.exists() and not path.is_dir():
+        fail(f"{option_name} {path} is a file, not a folder; give a folder (it is created "
+             "when missing)")
+    if any(p.exists() and not p.is_dir() for p in path.parents):
+        fail(f"{option_name} {path}: a part of the path is a file, not a folder")
+    return path
+
+
+def load_case(case: str):
+    """The case ``case`` names (a TOML file or 'synthetic'); exit 2 with every problem."""
+    # hmcore.cases imports pandas: keeps `hmflow --help` fast
+    from hmcore.cases import load_case as load
+
+    try:
+        return load(case)
+    except CaseError as exc:
+        print_problems(f"Case {case} is not valid", exc.problems)
+        raise typer.Exit(2)
+
+
+def parse_sets(sets: list[str], names: list[str]) -> dict[str, float]:
+    """``--set NAME=VALUE`` items as values of the parameters ``names``; exit 2 with every
+    item that is no known name or no finite number."""
+    values = {}
+    problems = []
+    for item in sets:
+        name, sep, val = item.partition("=")
+        if not sep:
+            problems.append(f"--set {item!r}: expected NAME=VALUE")
+            continue
+        if name not in names:
+            near = difflib.get_close_matches(name, names, n=1)
+            hint = f" (did you mean {near[0]!r}?)" if near else ""
+            problems.append(f"--set {item!r}: unknown parameter {name!r}{hint}; known: {names}")
+            continue
+        try:
+            value = float(val)
+        except ValueError:
+            problems.append(f"--set {item!r}: {val!r} is not a number")
+            continue
+        if not math.isfinite(value):
+            problems.append(f"--set {item!r}: {val!r} is not a finite number (give a value "
+                            "inside the parameter's bounds)")
+            continue
+        values[name] = value
+    refuse(problems)
+    return values
+
+
+# ------------------------------------------------------------------------------ printing
+def num(v, digits=4) -> str:
+    """A number as the terminal shows it ('n/a' for none or not finite)."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    return f"{v:.{digits}f}"
+
+
+def print_tables(metrics: dict, title: str = "") -> None:
+    """Print the paper's three tables (categories; C_match per well; GOR / water cut per well),
+    in the paper's rounding."""
+    # the reporting imports pandas: keeps `hmflow --help` fast
+    from hmcore.reporting.paper_tables import cell, paper_tables
+
+    heads = {"categories": "match by category", "wells": "C_match (%) per well and category",
+             "ratios": "GOR and water cut per well (records used, left out and why)"}
+    for key, df in paper_tables(metrics).items():
+        t = Table(title=f"{title} {heads[key]}".strip())
+        for col in df.columns:
+            t.add_column(str(col), justify="left" if col in ("category", "ratio", "well", "why")
+                         else "right")
+        for row in df.itertuples(index=False):
+            t.add_row(*[cell(c, v) for c, v in zip(df.columns, row)])
+        console.print(t)
