@@ -4,7 +4,6 @@ archive the best valid case -> curves and forecast -> report (Markdown, JSON, HT
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -39,9 +38,10 @@ DEFAULT_STORAGE = "./hmflow-storage"
 def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> None:
     """A campaign name is bound to its settings: a rerun with the same ones resumes (no call is
     simulated twice); different settings under the same name are refused, never mixed."""
-    path = Path(store_root) / campaign / "campaign.json"
-    if path.exists():
-        before = {**SETTINGS_BEFORE_THEY_WERE_STORED, **json.loads(path.read_text())}
+    store = ArtifactStore(store_root)
+    stored = store.settings(campaign)
+    if stored is not None:
+        before = {**SETTINGS_BEFORE_THEY_WERE_STORED, **stored}
         files = _changed_files(before.get("deck_files"), settings.get("deck_files"))
         if files:
             raise ValueError(f"campaign '{campaign}' in {store_root} was started on another "
@@ -70,20 +70,16 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
             raise ValueError(f"campaign '{campaign}' in {store_root} was started with other "
                              f"settings {diff} (stored, given); choose another --campaign name")
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(settings, indent=2))
-    tmp.replace(path)
+    store.bind_settings(campaign, settings)
 
 
 def fork_origin(store_root: str, campaign: str) -> dict:
     """What a fork records of the campaign it comes from: its name and fingerprint (the case
     artifact it was bound to and the hashes of every file its deck read). ValueError when
     there is no such stored campaign."""
-    path = Path(store_root) / validate_name("campaign", campaign) / "campaign.json"
-    if not path.is_file():
+    before = ArtifactStore(store_root).settings(validate_name("campaign", campaign))
+    if before is None:
         raise ValueError(f"cannot fork from campaign '{campaign}': it is not in {store_root}")
-    before = json.loads(path.read_text())
     return {"campaign": campaign, "case_artifact": before.get("case_artifact"),
             "deck_files": before.get("deck_files")}
 

@@ -8,7 +8,9 @@ Layout: ``ROOT/<campaign>/<step>/v0001/`` holding the step's files and a ``manif
 A version is written in a hidden temp dir inside the step folder and published with one atomic
 ``os.rename``, so readers never see a half-written version and a crash leaves at most a
 ``.tmp-*`` dir behind (ignored by every listing). Existing versions are never overwritten or
-deleted. ``ROOT/<campaign>/evaluations/`` (and ``evaluations-<name>/``, a campaign's other
+deleted. ``ROOT/<campaign>/campaign.json`` holds the settings the campaign's name is bound to
+(:meth:`ArtifactStore.settings`, :meth:`ArtifactStore.bind_settings`).
+``ROOT/<campaign>/evaluations/`` (and ``evaluations-<name>/``, a campaign's other
 journals) is reserved for :class:`storage.EvaluationJournal`; ``ROOT/<campaign>/runs/`` and
 ``diagnosis-runs/`` hold the simulator's run directories (:meth:`ArtifactStore.work_dir`).
 
@@ -43,6 +45,8 @@ RUNS = "runs"
 """Folder of a campaign's run directories, one per call (``runs/<index:06d>``)."""
 DIAGNOSIS_RUNS = "diagnosis-runs"
 """Folder of a diagnosis's run directories, one per run (``diagnosis-runs/<step>-<n:05d>``)."""
+SETTINGS = "campaign.json"
+"""A campaign's settings: the ones its name is bound to, written once when it starts."""
 NAME_RULE = "1-128 characters among letters, digits, '-', '_' and '.', not starting with '.'"
 _NAME_RE = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,127}")
 _VERSION_RE = re.compile(r"v(\d{4,})")
@@ -298,6 +302,36 @@ class ArtifactStore:
         campaign_dir = self.root / validate_name("campaign", campaign)
         return [s for s in _subdirs(campaign_dir)
                 if not is_journal_folder(s) and self._version_numbers(campaign_dir / s)]
+
+    def has_campaign(self, campaign: str) -> bool:
+        """Whether ``campaign`` has a folder in the store (anything stored under its name)."""
+        return (self.root / validate_name("campaign", campaign)).is_dir()
+
+    def settings(self, campaign: str) -> dict[str, Any] | None:
+        """The settings ``campaign``'s name is bound to (its ``campaign.json``); None when it
+        has none yet."""
+        path = self.root / validate_name("campaign", campaign) / SETTINGS
+        if not path.is_file():
+            return None
+        return json.loads(path.read_text(encoding="utf-8"))
+
+    def bind_settings(self, campaign: str, settings: Mapping[str, Any]) -> Path:
+        """Bind ``campaign``'s name to ``settings``: written once, atomically (a temp file,
+        fsync'd, renamed into place). The same settings again are a no-op; other settings
+        raise ValueError naming the campaign (compare first: see ``flows.campaign``)."""
+        directory = refuse_links(self.root, validate_name("campaign", campaign))
+        directory.mkdir(parents=True, exist_ok=True)
+        path = directory / SETTINGS
+        data = to_jsonable(dict(settings), f"{campaign}/{SETTINGS}")
+        if path.is_file():
+            if sha256_json(json.loads(path.read_text(encoding="utf-8"))) != sha256_json(data):
+                raise ValueError(f"campaign '{campaign}' in {self.root} is bound to other "
+                                 f"settings ({path}); choose another campaign name")
+            return path
+        tmp = directory / f".{SETTINGS}.{uuid.uuid4().hex}.tmp"
+        _write_json(tmp, data)
+        os.replace(tmp, path)
+        return path
 
     def work_dir(self, campaign: str, folder: str) -> Path:
         """``ROOT/<campaign>/<folder>``, a folder of files that are no artifact version (the

@@ -67,7 +67,7 @@ def collect(store_root: str, campaign: str, reference: str | None,
         archived = best_dir.path if best_dir is not None else None
         add("best", best["index"] + 1, _summary(best.get("run_dir")) or _summary(archived))
     refs = {}
-    if reference and (store.root / reference).is_dir():
+    if reference and store.has_campaign(reference):
         refs = {r["index"]: r for r in EvaluationJournal(store, reference).rows()}
     truth_known = case_truth(Path(case_doc["source"])) is not None
     floor = add("truth" if truth_known else "deck", 0,

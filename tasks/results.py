@@ -111,12 +111,8 @@ REPORT_VERSION = 2  # 2: report.html; a report of other content is another versi
 def campaign_reference(store: ArtifactStore, campaign: str) -> str:
     """The campaign holding ``campaign``'s reference runs (stored in its campaign.json; by
     default CAMPAIGN-reference)."""
-    settings = store.root / campaign / "campaign.json"
-    if settings.is_file():
-        stored = json.loads(settings.read_text()).get("reference")
-        if stored:
-            return stored
-    return reference_name(campaign)
+    stored = (store.settings(campaign) or {}).get("reference")
+    return stored or reference_name(campaign)
 
 
 def _diagnosis_markdown(diagnosis_doc: dict | None) -> str | None:
@@ -145,12 +141,11 @@ def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, be
     forecast_doc = curves.read_json("forecast.json") if curves is not None else None
     refs = {}
     reference = (forecast_doc or {}).get("reference") or campaign_reference(store, campaign)
-    if (store.root / reference).is_dir():
+    if store.has_campaign(reference):
         rows = {r["index"]: r for r in EvaluationJournal(store, reference).rows()}
         refs = {"floor": (rows.get(FLOOR) or {}).get("E"),
                 "centre": (rows.get(CENTRE) or {}).get("E")}
-    settings = store.root / campaign / "campaign.json"
-    agent = json.loads(settings.read_text()).get("agent", "") if settings.is_file() else ""
+    agent = (store.settings(campaign) or {}).get("agent", "")
     return ReportInputs(
         campaign=campaign, case_doc=case_doc, agent=agent,
         table=table if table is not None else pd.DataFrame(columns=["index", "status", "E"]),

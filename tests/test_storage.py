@@ -617,3 +617,17 @@ def test_a_linked_root_is_allowed(tmp_path):
     version = ArtifactStore(tmp_path / "root").put("c", "s", {}, write_text("x"), CV)
     assert (real / "c" / "s" / "v0001" / "out.txt").read_text() == "x"
     assert version.version == 1
+
+
+def test_campaign_settings_are_bound_once_through_the_store(tmp_path):
+    store = ArtifactStore(tmp_path)
+    assert store.settings("c") is None and not store.has_campaign("c")
+    store.bind_settings("c", {"agent": "lm", "seed": np.int64(3)})
+    assert store.settings("c") == {"agent": "lm", "seed": 3} and store.has_campaign("c")
+    store.bind_settings("c", {"seed": 3, "agent": "lm"})  # the same settings: a no-op
+    with pytest.raises(ValueError, match="bound to other settings"):
+        store.bind_settings("c", {"agent": "cmaes", "seed": 3})
+    assert store.settings("c") == {"agent": "lm", "seed": 3}
+    assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["campaign.json"]  # no temp left
+    with pytest.raises(ValueError):
+        store.bind_settings("../outside", {})
