@@ -10,9 +10,15 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import logging
+import os
 import re
 import shutil
+import socket
+import subprocess
+import sys
 import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -31,6 +37,10 @@ TRUTH_VALUES = {"poro_mult": 1.0, "permx_mult": 1.0, "permy_mult": 1.0, "permz_m
 # has closed the stream its console handler writes to; without this, logging prints a
 # "--- Logging error ---" traceback under the test summary (nothing failed).
 logging.raiseExceptions = False
+
+# Prefect waits 20 s for its temporary server by default; with two simulations on the 2 cores
+# the server's start (SQLite migrations) can take longer, and the test would fail for it.
+os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
 
 # The machine has 2 cores: never more than 2 simulations at once from this test session.
 MAX_PARALLEL_SIMULATIONS = 2
@@ -184,3 +194,81 @@ def opm_runs(punq_dir, tmp_path_factory) -> OpmRunCache:
 def truth_run(opm_runs):
     """One real OPM Flow run of the unmodified PUNQ-S3 truth deck (shared by all test files)."""
     return opm_runs.run({})
+
+
+@pytest.fixture(scope="session")
+def small_case(tmp_path_factory) -> Path:
+    """``case.toml`` of the small synthetic case, written once per session (one real OPM run).
+
+    :data:`hmcore.scenarios.synthetic_deck.SMALL_LAYOUT`, seed 0, case name
+    ``synthetic-small``: the built-in case's reservoir, wells, gas cap, aquifer, shut-ins and
+    noise on 10 x 10 x 5 cells over 3 years, a fifth of its simulation time. For tests of logic
+    that need a real case (campaigns, reports, benchmarks, where a diagnosis is stored); what
+    the built-in case is and what a diagnosis finds in it stay on the built-in case. Read only:
+    a test that changes the case copies its folder first.
+    """
+    if not _opm_importable():
+        pytest.skip("OPM Python packages (opm, opm-simulators) not installed")
+    from hmcore.scenarios.synthetic import write_synthetic_case
+    from hmcore.scenarios.synthetic_deck import SMALL_LAYOUT
+
+    with SIMULATION_SLOTS:
+        return write_synthetic_case(tmp_path_factory.mktemp("small-synthetic") / "case", 0,
+                                    layout=SMALL_LAYOUT)
+
+
+@pytest.fixture(scope="session")
+def prefect_api(tmp_path_factory) -> Iterator[str]:
+    """The URL of one Prefect API server for the session's command-line runs.
+
+    `hmflow run`, `diagnose` and `bench` start a temporary Prefect server of their own unless
+    ``PREFECT_API_URL`` is set (:mod:`hmflow.server`); a test that does not test that server
+    passes ``cli_env(prefect_api)`` to the command instead and saves a server start per
+    command. The same server command as hmflow's (uvicorn with Prefect's app factory), with its
+    own PREFECT_HOME (its own SQLite database); stopped at the end of the session.
+    """
+    import httpx
+
+    home = tmp_path_factory.mktemp("prefect-api-home")
+    app_dir = Path(importlib.util.find_spec("prefect").origin).parent.parent
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    url = f"http://127.0.0.1:{port}/api"
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")},
+           "PREFECT_HOME": str(home), "PREFECT_UI_ENABLED": "0",
+           "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
+    with open(home / "server.log", "wb") as log:  # the child keeps its own descriptor
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "uvicorn", "--app-dir", str(app_dir), "--factory",
+             "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port", str(port),
+             "--log-level", "error", "--lifespan", "on"],
+            env=env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            if proc.poll() is not None:
+                pytest.fail(f"the session's Prefect server exited with {proc.returncode}:\n"
+                            + (home / "server.log").read_text(errors="replace")[-3000:])
+            try:
+                if httpx.get(f"{url}/health", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail(f"the session's Prefect server did not answer on {url} in 120 s")
+            time.sleep(0.2)
+        yield url
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def cli_env(api_url: str, **extra: str) -> dict[str, str]:
+    """This process's environment for an `hmflow` subprocess that uses the session's Prefect
+    server (:func:`prefect_api`) instead of starting its own, plus ``extra``."""
+    return {**os.environ, "PREFECT_API_URL": api_url, **extra}

@@ -19,13 +19,16 @@ What every solver here shares, :class:`AskTellLeastSquares`:
 How a damped Gauss-Newton step is chosen is the solver's step rule, and each user keeps the
 rule its results were made with (a campaign is bound to the calls its method made):
 
-* :class:`TrustRegionReflective` (the ``lm`` method): scipy's trust-region reflective
-  algorithm, ``scipy.optimize.least_squares(method="trf", x_scale=1.0)``, as a state machine
-  (:mod:`hmcore.calibration.trust_region_reflective`): one trial point per request, a new
-  finite-difference Jacobian at every accepted point.
+* :class:`~hmcore.calibration.trust_region_reflective.TrustRegionReflective` (the ``lm``
+  method): scipy's trust-region reflective algorithm, ``scipy.optimize.least_squares(
+  method="trf", x_scale=1.0)``, as a state machine: one trial point per request, the radius
+  of a trust region as the damping, reflection at the bounds, a new finite-difference
+  Jacobian at every accepted point. Its module computes with scipy's helpers (whose import
+  takes a second), so that the recalibrations, which need only numpy, do not load them.
 * :class:`LevenbergMarquardt` (the recalibrations): Marquardt's damping ``lam * diag(J'J)``
-  with several damping values tried together, an active set at the bounds, and Broyden
-  rank-one updates of the Jacobian in place of new finite differences.
+  with several damping values tried together, an active set at the bounds and projection
+  onto the box, and Broyden rank-one updates of the Jacobian in place of new finite
+  differences.
 """
 
 from __future__ import annotations

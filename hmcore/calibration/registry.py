@@ -9,10 +9,7 @@ from __future__ import annotations
 AGENTS = ("sac", "sac-paper", "random", "sobol", "cmaes", "de", "bo", "lm", "esmda")
 DEFAULT_AGENT = "lm"
 """The method a campaign runs unless told otherwise: the winner of the equal-budget benchmark
-(docs/benchmarks.md, issue 14). It was ``sac`` until 2026-11-25: on PUNQ-S3's measured history
-(5 seeds x 100 calls) ``lm`` reached 1.1x the floor in a median of 13 calls and ``sac`` never
-reached 1.2x; the same order held on the synthetic case and on PUNQ-S3 histories made from
-moved globals."""
+(docs/benchmarks.md: how it was measured, and the method it replaced)."""
 VERSIONS = {"sac": 1, "lm": 2}
 """A method whose proposals changed: campaigns are bound to the version that made their calls
 (a resume under another version is refused; a benchmark names its campaigns after it).

@@ -29,7 +29,9 @@ radius, as in scipy.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -48,6 +50,35 @@ STATUS = {0: "the residual evaluations allowed are spent",
           3: "the step is below xtol",
           4: "the cost reduction and the step are below ftol and xtol"}
 """Why a descent ended, by scipy's status number."""
+
+
+@dataclass(frozen=True)
+class _Scaled:
+    """The trust-region problem at the current point, in scipy's scaled ("hat") variables:
+    the Coleman-Li scaling ``d``, the bound term ``diag_h``, the scaled gradient and Jacobian,
+    and the SVD of the augmented Jacobian (``uf = U'f``, ``s``, ``V``)."""
+
+    d: np.ndarray
+    diag_h: np.ndarray
+    g_h: np.ndarray
+    J_h: np.ndarray
+    uf: np.ndarray
+    s: np.ndarray
+    V: np.ndarray
+    theta: float  # how far a step may go towards a bound (0.995 of the way, or more)
+
+
+@dataclass(frozen=True)
+class _Trial:
+    """A trial point asked, the step to it, the reduction the model predicts, and (once told)
+    its residuals and cost."""
+
+    x_new: np.ndarray
+    step: np.ndarray
+    step_h: np.ndarray
+    predicted: float
+    f_new: np.ndarray | None = None
+    cost_new: float = math.nan
 
 
 class TrustRegionReflective(AskTellLeastSquares):
@@ -77,8 +108,9 @@ class TrustRegionReflective(AskTellLeastSquares):
         self.failed = False
         self.Delta: float | None = None  # trust-region radius (scaled space)
         self.alpha = 0.0  # Levenberg-Marquardt parameter of the trust-region subproblem
-        self._hat: dict[str, Any] = {}  # the current point's scaled quantities
-        self._trial: dict[str, Any] = {}  # the trial point asked and its step
+        self.actual_reduction = -1.0  # of the last trial's cost
+        self._scaled: _Scaled | None = None
+        self._trial: _Trial | None = None
         self._pending = [("start", self.x.copy(), None)]
 
     # ------------------------------------------------------------------ ask
@@ -118,7 +150,7 @@ class TrustRegionReflective(AskTellLeastSquares):
         """The initial radius, once the start point and its Jacobian are known."""
         if not np.all(np.isfinite(self.f)):
             raise ValueError("Residuals are not finite in the initial point.")
-        v, dv = CL_scaling_vector(self.x, self.g, self.lower, self.upper)
+        v, _ = CL_scaling_vector(self.x, self.g, self.lower, self.upper)
         self.Delta = norm(self.x / v**0.5)
         if self.Delta == 0:
             self.Delta = 1.0
@@ -144,41 +176,41 @@ class TrustRegionReflective(AskTellLeastSquares):
         J_augmented[:m] = J * d
         J_augmented[m:] = np.diag(diag_h**0.5)
         U, s, V = svd(J_augmented, full_matrices=False)
-        self._hat = {"d": d, "diag_h": diag_h, "g_h": d * g, "J_h": J_augmented[:m],
-                     "uf": U.T.dot(f_augmented), "s": s, "V": V.T,
-                     "theta": max(0.995, 1 - g_norm), "m": m, "n": n}
-        self._trial = {"actual_reduction": -1}
+        self._scaled = _Scaled(d, diag_h, d * g, J_augmented[:m], U.T.dot(f_augmented), s, V.T,
+                               max(0.995, 1 - g_norm))
+        self.actual_reduction = -1
         self._next_trial()
 
     def _next_trial(self) -> None:
         """Ask for a trial point from the current one, or end the outer iteration."""
-        h, t = self._hat, self._trial
-        if not (t["actual_reduction"] <= 0 and self.nfev < self.max_nfev):
+        if not (self.actual_reduction <= 0 and self.nfev < self.max_nfev):
             self._end_iteration()
             return
-        p_h, self.alpha, _ = solve_lsq_trust_region(h["n"], h["m"], h["uf"], h["s"], h["V"],
-                                                    self.Delta, initial_alpha=self.alpha)
-        p = h["d"] * p_h
-        step, step_h, predicted = select_step(self.x, h["J_h"], h["diag_h"], h["g_h"], p, p_h,
-                                              h["d"], self.Delta, self.lower, self.upper,
-                                              h["theta"])
+        h = self._scaled
+        m, n = h.J_h.shape
+        p_h, self.alpha, _ = solve_lsq_trust_region(n, m, h.uf, h.s, h.V, self.Delta,
+                                                    initial_alpha=self.alpha)
+        p = h.d * p_h
+        step, step_h, predicted = select_step(self.x, h.J_h, h.diag_h, h.g_h, p, p_h, h.d,
+                                              self.Delta, self.lower, self.upper, h.theta)
         x_new = make_strictly_feasible(self.x + step, self.lower, self.upper, rstep=0)
-        t.update(step=step, step_h=step_h, predicted=predicted, x_new=x_new)
+        self._trial = _Trial(x_new, step, step_h, predicted)
         self._pending = [("trial", x_new.copy(), None)]
 
     def _told_trial(self, f_new: np.ndarray) -> None:
         t = self._trial
         self.nfev += 1
-        step_h_norm = norm(t["step_h"])
+        step_h_norm = norm(t.step_h)
         if not np.all(np.isfinite(f_new)):
             self.Delta = 0.25 * step_h_norm
             self._next_trial()
             return
         cost_new = 0.5 * np.dot(f_new, f_new)
-        t.update(f_new=f_new, cost_new=cost_new, actual_reduction=self.cost - cost_new)
-        Delta_new, ratio = update_tr_radius(self.Delta, t["actual_reduction"], t["predicted"],
+        self._trial = dataclasses.replace(t, f_new=f_new, cost_new=cost_new)
+        self.actual_reduction = self.cost - cost_new
+        Delta_new, ratio = update_tr_radius(self.Delta, self.actual_reduction, t.predicted,
                                             step_h_norm, step_h_norm > 0.95 * self.Delta)
-        self.status = check_termination(t["actual_reduction"], self.cost, norm(t["step"]),
+        self.status = check_termination(self.actual_reduction, self.cost, norm(t.step),
                                         norm(self.x), ratio, self.ftol, self.xtol)
         if self.status is not None:
             self._end_iteration()
@@ -190,9 +222,9 @@ class TrustRegionReflective(AskTellLeastSquares):
     def _end_iteration(self) -> None:
         """Accept a trial that lowered the cost (and ask for the Jacobian there), else iterate
         again from the same point."""
-        t = self._trial
-        if t["actual_reduction"] > 0:
-            self.x, self.f, self.cost = t["x_new"], t["f_new"], t["cost_new"]
+        if self.actual_reduction > 0:
+            t = self._trial
+            self.x, self.f, self.cost = t.x_new, t.f_new, t.cost_new
             self._pending = self._fd_requests(self.x)
             return
         self.iteration += 1

@@ -1,9 +1,10 @@
 """Numerics of refitting the extended models: where each recalibration starts, which ones are
 restarted from the deck's values, and the prior that keeps a restart near the model as given.
 
-In the shape of :mod:`hmcore.diagnosis.recalibrate` (whose bounded Levenberg-Marquardt does the
-minimising): plain functions of coordinates, residual sums of squares and settings; nothing here
-runs the simulator. :class:`hmcore.diagnosis.workflow.Diagnosis` makes the runs.
+In the shape of :mod:`hmcore.diagnosis.recalibrate` (the bounded Levenberg-Marquardt of
+:mod:`hmcore.calibration.least_squares` does the minimising): plain functions of coordinates,
+residual sums of squares and settings; nothing here runs the simulator.
+:class:`hmcore.diagnosis.workflow.Diagnosis` makes the runs.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hmcore.diagnosis.recalibrate import LMSettings
+from hmcore.calibration.least_squares import LMSettings
 from hmcore.diagnosis.settings import DiagnosisSettings
 
 

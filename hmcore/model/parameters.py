@@ -1,7 +1,8 @@
 """Parameters as declared data: name, kind, bounds and what they touch in the deck.
 
-The action space of every proposer is ``[-1, 1]^n``; :class:`ParameterSpace` is the one place
-that maps actions to physical values (linearly) and back.
+The action space of every proposer is ``[-1, 1]^n``; :class:`Scaling` is the one mapping of
+scaled coordinates to physical values and back (linear in the value, or in its logarithm for a
+parameter with ``log = true``), and :class:`ParameterSpace` maps a case's actions with it.
 
 Kinds (each turns a value into deck edits, see :mod:`hmcore.model.run_deck`):
 
@@ -38,6 +39,7 @@ Kinds (each turns a value into deck edits, see :mod:`hmcore.model.run_deck`):
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from enum import StrEnum
 from typing import Annotated, Literal
 
@@ -91,6 +93,10 @@ class Parameter(BaseModel):
     match: str | None = None
     mode: Literal["scale", "power", "endpoint"] = "scale"
     start_day: Bound | None = Field(default=None, gt=0)
+    log: bool = Field(default=False, exclude_if=lambda log: not log)
+    """Scaled linearly in log(value) (a factor: equal steps are equal ratios), not in the
+    value. Left out of a dump when False, so that a parameter without it is written as
+    before."""
     description: str = ""
 
     @model_validator(mode="after")
@@ -169,6 +175,9 @@ class Parameter(BaseModel):
             raise ValueError(f"parameter '{self.name}': mode = {self.mode!r} is only for kind "
                              f"'relperm' (how a relative permeability curve changes), not "
                              f"'{self.kind}'; remove it")
+        if self.log and self.low <= 0:
+            raise ValueError(f"parameter '{self.name}': a log scale needs low > 0, "
+                             f"got low={self.low}")
         if self.start_day is not None and self.kind != "wpimult":
             raise ValueError(f"parameter '{self.name}': start_day (an edit from a date on) is "
                              f"only for kind 'wpimult', not '{self.kind}'")
@@ -194,6 +203,42 @@ def reference_parameters() -> tuple[Parameter, ...]:
         Parameter(name="skin", kind="skin", low=-5.0, high=15.0,
                   description="skin factor on every producer connection"),
     )
+
+
+@dataclass(frozen=True)
+class Scaling:
+    """Physical values <-> scaled coordinates in [-1, 1], per parameter: ``low`` maps to -1 and
+    ``high`` to 1, linearly in the value, or in log(value) where ``log`` is set."""
+
+    lo: np.ndarray
+    """Where -1 maps to: ``low``, or log(low) where ``log``."""
+    hi: np.ndarray
+    """Where 1 maps to: ``high``, or log(high) where ``log``."""
+    log: np.ndarray
+    """Which parameters are scaled in log(value) (bool)."""
+
+    @classmethod
+    def of(cls, parameters: tuple[Parameter, ...] | list[Parameter]) -> Scaling:
+        """The scaling of ``parameters``, each by its own ``log`` flag."""
+        log = np.array([p.log for p in parameters], dtype=bool)
+        lo = np.array([p.low for p in parameters], dtype=float)
+        hi = np.array([p.high for p in parameters], dtype=float)
+        lo[log] = np.log(lo[log])
+        hi[log] = np.log(hi[log])
+        return cls(lo, hi, log)
+
+    def to_values(self, u: np.ndarray) -> np.ndarray:
+        """Scaled coordinates (clipped to [-1, 1]) -> physical values."""
+        u = np.clip(np.asarray(u, float), -1.0, 1.0)
+        x = self.lo + (u + 1.0) * 0.5 * (self.hi - self.lo)
+        x[self.log] = np.exp(x[self.log])
+        return x
+
+    def to_scaled(self, values: np.ndarray) -> np.ndarray:
+        """Physical values -> scaled coordinates (not clipped)."""
+        t = np.array(values, dtype=float)
+        t[self.log] = np.log(np.maximum(t[self.log], 1e-300))
+        return 2.0 * (t - self.lo) / (self.hi - self.lo) - 1.0
 
 
 class ParameterSpace(BaseModel):
@@ -233,10 +278,13 @@ class ParameterSpace(BaseModel):
     def high(self) -> np.ndarray:
         return np.array([p.high for p in self.parameters], dtype=float)
 
+    @property
+    def scaling(self) -> Scaling:
+        return Scaling.of(self.parameters)
+
     def to_values(self, action: np.ndarray) -> dict[str, float]:
         """Action in [-1, 1]^n (clipped) -> {name: physical value}."""
-        a = np.clip(np.asarray(action, dtype=float).reshape(self.dim), -1.0, 1.0)
-        x = self.low + (a + 1.0) * 0.5 * (self.high - self.low)
+        x = self.scaling.to_values(np.asarray(action, dtype=float).reshape(self.dim))
         return {n: float(v) for n, v in zip(self.names, x)}
 
     def to_action(self, values: dict[str, float]) -> np.ndarray:
@@ -244,8 +292,7 @@ class ParameterSpace(BaseModel):
         missing = [n for n in self.names if n not in values]
         if missing:
             raise KeyError(f"values are missing parameters {missing}")
-        x = np.array([float(values[n]) for n in self.names])
-        return 2.0 * (x - self.low) / (self.high - self.low) - 1.0
+        return self.scaling.to_scaled([float(values[n]) for n in self.names])
 
     def check_in_bounds(self, values: dict[str, float]) -> list[str]:
         """Messages for values outside their bounds (empty when all are inside)."""

@@ -72,10 +72,7 @@ class Sampler:
                 for i, a in enumerate(self._points(n))]
 
     def tell(self, proposals: list[Proposal], feedback: list[Feedback]) -> None:
-        from hmcore.calibration.methods.env import observation
-
-        for p, f in zip(proposals, feedback, strict=True):
-            self.lanes.set(p.lane, observation(p.action, f.e_obs))
+        for p, f in self.lanes.tell(proposals, feedback):
             if self._best is None or f.reward > self._best[0]:
                 self._best = (f.reward, p.action)
 
@@ -97,3 +94,15 @@ class LaneMemory:
 
     def set(self, lane: int, obs: np.ndarray) -> None:
         self._obs[lane] = obs
+
+    def tell(self, proposals: list[Proposal], feedback: list[Feedback]
+             ) -> list[tuple[Proposal, Feedback]]:
+        """What a proposer's ``tell`` does first: each told proposal's lane remembers what it
+        led to (``[a, E]``). Returns the (proposal, feedback) pairs in order, for the proposer
+        to hand to its library."""
+        from hmcore.calibration.methods.env import observation  # env loads gymnasium
+
+        pairs = list(zip(proposals, feedback, strict=True))
+        for p, f in pairs:
+            self.set(p.lane, observation(p.action, f.e_obs))
+        return pairs

@@ -15,7 +15,6 @@ from __future__ import annotations
 import numpy as np
 
 from hmcore.calibration.methods.base import Feedback, LaneMemory, Proposal
-from hmcore.calibration.methods.env import observation
 
 COST_FLOOR = 1e-12  # log10 of a cost of 0
 
@@ -51,8 +50,7 @@ class BOProposer:
         return out
 
     def tell(self, proposals: list[Proposal], feedback: list[Feedback]) -> None:
-        for p, f in zip(proposals, feedback, strict=True):
-            self.lanes.set(p.lane, observation(p.action, f.e_obs))
+        for p, f in self.lanes.tell(proposals, feedback):
             trial = self._trials.pop(p.key, None)
             if trial is None:
                 continue

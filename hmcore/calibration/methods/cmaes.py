@@ -14,7 +14,6 @@ import math
 import numpy as np
 
 from hmcore.calibration.methods.base import Feedback, LaneMemory, Proposal
-from hmcore.calibration.methods.env import observation
 
 SIGMA0 = 0.5  # initial step, in action units (the box is 2 wide)
 
@@ -51,8 +50,7 @@ class CMAProposer:
         return out
 
     def tell(self, proposals: list[Proposal], feedback: list[Feedback]) -> None:
-        for p, f in zip(proposals, feedback, strict=True):
-            self.lanes.set(p.lane, observation(p.action, f.e_obs))
+        for p, f in self.lanes.tell(proposals, feedback):
             if 0 <= p.key < len(self._generation):  # key -1: the final recommendation
                 self._told[p.key] = -f.reward
         if self._generation and len(self._told) == len(self._generation):

@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 
 from hmcore.calibration.methods.base import Feedback, LaneMemory, Proposal
-from hmcore.calibration.methods.env import observation
 
 POPSIZE = 10
 
@@ -44,8 +43,7 @@ class DEProposer:
         return out
 
     def tell(self, proposals: list[Proposal], feedback: list[Feedback]) -> None:
-        for p, f in zip(proposals, feedback, strict=True):
-            self.lanes.set(p.lane, observation(p.action, f.e_obs))
+        for p, f in self.lanes.tell(proposals, feedback):
             cand = self._pending.pop(p.key, None)
             if cand is not None:
                 self.opt.tell(cand, float(-f.reward))

@@ -1,5 +1,7 @@
-"""Levenberg-Marquardt-style least squares (``scipy.optimize.least_squares``, trust region
-reflective, bounded to [-1, 1]^d) on the whitened residuals of the fitted history.
+"""Bounded least squares on the whitened residuals of the fitted history, multi-start: the
+ask/tell solver of :mod:`hmcore.calibration.trust_region_reflective` (scipy's trust-region
+reflective algorithm, ``least_squares(method="trf")``, on [-1, 1]^d), driven here over the
+budgeted calls.
 
 The residual vector of a call is the noise-whitened ``(simulated - observed) / sigma`` of the
 case's :class:`hmcore.scoring.observations.ObservationSet` (the campaign stores it in the
@@ -10,11 +12,11 @@ call. A failed run has no residuals: at the current point it ends that descent, 
 its column is left at 0. When a descent converges with budget left, a new one starts from a
 uniform-random point (the first starts at the box's centre), until the budget is spent.
 
-Workers are not left idle by the serial steps (version 2, 2026-11-25): each trial point is
-sent together with the first W - 1 finite-difference runs of the Jacobian at that point, so
-that when the step is accepted (it usually is) those columns are already there. A rejected
-step wastes them: W - 1 calls. Version 1 sent the trial point alone, and a 2-worker campaign
-ran 32 % above the simulator time per worker on PUNQ-S3 (one worker idle at every step).
+Workers are not left idle by the serial steps (version 2): each point the solver asks is sent
+together with the first W - 1 finite-difference runs of the Jacobian at that point, so that
+when the step is accepted (it usually is) those columns are already there. A rejected step
+wastes them: W - 1 calls. Version 1 sent the trial point alone, and a 2-worker campaign ran
+32 % above the simulator time per worker on PUNQ-S3 (one worker idle at every step).
 """
 
 from __future__ import annotations
@@ -23,15 +25,12 @@ import math
 
 import numpy as np
 
-from hmcore.calibration.registry import VERSIONS
 from hmcore.calibration.calls import BudgetedCalls, BudgetExhausted
+from hmcore.calibration.registry import VERSIONS
+from hmcore.calibration.trust_region_reflective import TrustRegionReflective
 
 FD_STEP = 0.05
 VERSION = VERSIONS["lm"]  # what the campaign store binds a lm campaign to
-
-
-class _DescentFailed(Exception):
-    """The current point of a descent failed to simulate."""
 
 
 def residuals_of(record: dict) -> np.ndarray | None:
@@ -57,59 +56,50 @@ class LMDriver:
 
     def drive(self, space, evaluate_batch, budget: int, workers: int,
               done: dict[int, dict] | None = None) -> list[dict]:
-        from scipy.optimize import least_squares
-
         calls = BudgetedCalls(space, evaluate_batch, budget, done, self.name)
         x0 = np.zeros(self.dim)
-        cache: dict[tuple, np.ndarray] = {}
+        while calls.left > 0:
+            solver = TrustRegionReflective(x0, FD_STEP, max_nfev=calls.left)
+            try:
+                self._descend(solver, calls, workers)
+            except BudgetExhausted:
+                break
+            self.descents.append({"x": None, "cost": None, "status": "failed run"}
+                                 if solver.failed else
+                                 {"x": solver.x.tolist(), "cost": float(solver.cost),
+                                  "status": int(solver.status)})
+            x0 = self.rng.uniform(-1.0, 1.0, self.dim)
+        return calls.records
+
+    def _descend(self, solver: TrustRegionReflective, calls: BudgetedCalls,
+                 workers: int) -> None:
+        """One descent: each point the solver asks goes out with the first W - 1 runs of the
+        Jacobian there (version 2); a Jacobian it asks takes the runs already made."""
+        residuals: dict[tuple, np.ndarray] = {}  # the residuals at each point asked
         columns: dict[tuple, dict[int, dict]] = {}  # speculative Jacobian runs at a point
 
         def key_of(x: np.ndarray) -> tuple:
             return tuple(np.round(x, 12))
 
-        def steps_at(x: np.ndarray) -> np.ndarray:
-            return np.where(x + FD_STEP <= 1.0, FD_STEP, -FD_STEP)
-
-        def fun(x: np.ndarray) -> np.ndarray:
+        while not solver.done:
+            points = solver.ask()
+            if solver.jacobian_asked:
+                runs = dict(columns.get(key_of(solver.x), {}))
+                todo = [k for k in range(self.dim) if k not in runs]
+                if todo:
+                    runs.update(zip(todo, calls.run(np.array(points)[todo], phase="jacobian")))
+                solver.tell([(residuals_of(runs[k]), runs[k]) for k in range(self.dim)])
+                continue
+            (x,) = points
             key = key_of(x)
-            if key not in cache:
+            if key not in residuals:
                 extra = min(max(workers - 1, 0), self.dim, max(calls.left - 1, 0))
-                points = np.vstack([x[None], x[None, :] + np.diag(steps_at(x))[:extra]])
-                records = calls.run(points, phases=["explore"] + ["jacobian"] * extra)
+                batch = np.vstack([x[None], solver.fd_points(x)[:extra]])
+                records = calls.run(batch, phases=["explore"] + ["jacobian"] * extra)
                 columns[key] = dict(enumerate(records[1:]))
                 r = residuals_of(records[0])
                 if r is None:
-                    raise _DescentFailed
-                cache[key] = r
-            return cache[key]
-
-        def jac(x: np.ndarray) -> np.ndarray:
-            f0 = fun(x)
-            steps = steps_at(x)
-            have = columns.get(key_of(x), {})
-            todo = [k for k in range(self.dim) if k not in have]
-            runs = dict(have)
-            if todo:
-                points = x[None, :] + np.diag(steps)[todo]
-                runs.update(zip(todo, calls.run(points, phase="jacobian")))
-            J = np.zeros((f0.size, self.dim))
-            for k in range(self.dim):
-                r = residuals_of(runs[k])
-                if r is not None and r.size == f0.size:
-                    J[:, k] = (r - f0) / steps[k]
-            return J
-
-        while calls.left > 0:
-            try:
-                res = least_squares(fun, x0, jac=jac, bounds=(-1.0, 1.0), method="trf",
-                                    x_scale=1.0, max_nfev=calls.left)
-                self.descents.append({"x": res.x.tolist(), "cost": float(res.cost),
-                                      "status": int(res.status)})
-            except BudgetExhausted:
-                break
-            except _DescentFailed:
-                self.descents.append({"x": None, "cost": None, "status": "failed run"})
-            cache.clear()
-            columns.clear()
-            x0 = self.rng.uniform(-1.0, 1.0, self.dim)
-        return calls.records
+                    solver.tell([(None, records[0])])  # ends the descent
+                    return
+                residuals[key] = r
+            solver.tell([(residuals[key], None)])

@@ -20,10 +20,8 @@ scrambled-Sobol' start (``start="sobol"``, e.g. ``learning_starts=10``); the cri
 differ by 0.1 in log but by 1e-4 in E); and critic-chosen proposals (``candidates=512``):
 each proposal the best of that many actions by the critic (the smaller of its twin Q
 values), drawn from the policy and around the incumbent, inside a trust region around the
-best call (:mod:`hmcore.calibration.methods.trust_region`), W proposals kept apart. Together (with 16
-updates per call) they were tried as a second version of the default on 2026-11-24: on
-PUNQ-S3 seed 0 it stalled at 3.05x the floor for 56 calls (the region shrank around a poor
-early point) and ended at 1.40x (best at call 94), so the default stayed the first version.
+best call (:mod:`hmcore.calibration.methods.trust_region`), W proposals kept apart. Why they
+stay off (they were tried together as a second version of the default): docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -59,7 +57,7 @@ class SACSettings:
     candidates: int = 0            # actions scored by the critic per proposal (0: a policy sample)
     trust_region: bool = True      # candidates inside a trust region around the incumbent
     spread: float = 0.25           # proposals of one batch at least this x the region's side apart
-    # ablations (issue 14): what the agent learns from; the campaign is judged the same way
+    # ablations: what the agent learns from; the campaign is judged the same way
     penalty_in_reward: bool = True  # False: a scored run's learning cost is E, without P
     robust_lambda: float = 0.0     # > 0: learning cost + this x the worst well-response loss
 
