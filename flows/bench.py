@@ -4,24 +4,23 @@ consolidate into Parquet, a Markdown table and a plot."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from prefect import flow, get_run_logger
 
 from flows.campaign import DEFAULT_STORAGE, campaign_flow, check_campaign_settings
 from flows.labels import named_run
+from flows.refuse import USER_ERRORS, input_problems, refused
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
-from storage import ArtifactStore, EvaluationJournal
-from hmcore.reporting.benchmark import case_truth
-from hmcore.calibration.methods import method_version
-from hmcore.scoring.evaluation import SCORING_VERSION
-from tasks.bench import consolidate_bench
-from tasks.reference import reference_settings, run_references
-from flows.refuse import USER_ERRORS, input_problems, refused
+from hmcore.calibration.methods import AGENTS, method_version
 from hmcore.cases import load_case
+from hmcore.reporting.benchmark import case_truth
+from hmcore.scoring.evaluation import SCORING_VERSION
+from storage import ArtifactStore, EvaluationJournal
+from tasks.bench import consolidate_bench
 from tasks.case import prepare_deck
+from tasks.reference import reference_settings, run_references
 
 
 def bench_names(case_name: str, methods: list[str], seeds: list[int], name: str | None = None
@@ -41,10 +40,9 @@ def same_settings(store_root: str | Path, campaign: str, method: str, seed: int,
                   workers: int) -> bool | None:
     """Whether a campaign of this benchmark was stored under this method, seed, workers and
     scoring rules (None: no settings stored yet, the campaign has not started)."""
-    path = Path(store_root) / campaign / "campaign.json"
-    if not path.is_file():
+    stored = ArtifactStore(store_root).settings(campaign)
+    if stored is None:
         return None
-    stored = json.loads(path.read_text())
     return (stored.get("agent"), stored.get("seed"), stored.get("workers"),
             stored.get("scoring_version"), stored.get("method_version", 1)) == (
         method, seed, workers, SCORING_VERSION, method_version(method))
@@ -53,10 +51,10 @@ def same_settings(store_root: str | Path, campaign: str, method: str, seed: int,
 def same_bench(store_root: str | Path, bench: str, budget: int, workers: int) -> bool | None:
     """Whether the benchmark itself was stored with this budget and worker count (None: not
     started). Another budget or worker count is another benchmark, refused by the flow."""
-    path = Path(store_root) / bench / "campaign.json"
-    if not path.is_file():
+    stored = ArtifactStore(store_root).settings(bench)
+    if stored is None:
         return None
-    stored = json.loads(path.read_text())  # a key not stored yet (older stores): not checked
+    # a key not stored yet (older stores): not checked
     return all(stored[k] == v for k, v in (("budget", budget), ("workers", workers))
                if k in stored)
 
@@ -77,8 +75,6 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
                task_runner: Runner = "threads", dask_address: str | None = None) -> dict:
     """Every method x seed at the same ``budget`` of simulator calls on ``case`` (the
     simulator calls on ``task_runner``, as in the campaign flow)."""
-    from hmcore.calibration.methods import AGENTS
-
     logger = get_run_logger()
     storage = str(Path(storage).expanduser().resolve())
     methods = list(methods or AGENTS)

@@ -30,7 +30,8 @@ from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from hmcore.cases import BUILTIN_CASES, load_case
 from hmcore.diagnosis import Diagnosis, DiagnosisSettings, budget_problem, diagnose_all, parse_kinds
-from storage import code_version, sha256_json
+from hmcore.scoring.evaluation import SCORING_VERSION
+from storage import sha256_json
 from tasks.case import fingerprint_differences, prepare_deck
 from tasks.diagnose import JournaledRuns, diagnosis_journal, store_step
 from tasks.results import report as campaign_report
@@ -142,10 +143,12 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
         return refused(exc)
     campaign = campaign or default_campaign_name(loaded.name)
     case_version = prepare_deck(loaded, case, storage, campaign)
-    journal = diagnosis_journal({"case": case_version.ref(),
+    # the case by its content: other code stores the same files as another version number
+    case_content = {k: v for k, v in case_version.ref().items() if k != "version"}
+    journal = diagnosis_journal({"case": case_content,
                                  "settings": diagnosis_settings.to_dict(),
                                  "calibrated": calibrated, "initial": initial,
-                                 "code_version": code_version()})
+                                 "scoring_version": SCORING_VERSION})
     previous: dict[str, Any] = {"case": case_version.ref()}
     versions = {}
 

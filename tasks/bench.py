@@ -15,6 +15,7 @@ from hmcore.reporting import benchmark
 from hmcore.scoring.metrics import worst_well_cmatch
 from storage import ArtifactStore, EvaluationJournal, code_version
 
+
 @task(name="consolidate-benchmark", cache_policy=NO_CACHE)
 def consolidate_bench(store_root: str, bench: str, campaigns: dict[str, tuple[str, int]],
                       reference: str, case_name: str, budget: int, truth_known: bool,

@@ -35,7 +35,7 @@ DIAGNOSIS_AGENT = "diagnosis"
 
 def diagnosis_journal(inputs: dict[str, Any]) -> str:
     """The name of the journal of a diagnosis with these ``inputs`` (everything its runs depend
-    on: the case version, the settings, the values it starts from, the code version): another
+    on: the case's files, the settings, the values it starts from, the scoring rules): another
     diagnosis stored under the same campaign, with other inputs, has another journal."""
     return f"diagnosis-{sha256_json(inputs)[:16]}"
 
@@ -51,8 +51,8 @@ class JournaledRuns:
     """The diagnosis's ``evaluate_batch(case, values_list, step)`` on a started task ``runner``:
     numbers the runs in the order asked for, replays those ``journal`` holds and submits the
     others as ``simulate`` tasks, all of a batch at once. A journaled run whose values are not
-    the ones asked for is refused (the journal is never mixed): the diagnosis was started with
-    other code, since its inputs name the journal."""
+    the ones asked for is refused (the journal is never mixed): since the inputs name the
+    journal, the diagnosis that made it ran other code."""
 
     def __init__(self, storage: str, campaign: str, journal: str, runner):
         self.storage, self.campaign, self.runner = storage, campaign, runner

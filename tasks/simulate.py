@@ -146,8 +146,9 @@ def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, ag
     raise to be retried. With ``observations`` (an ObservationSet) the record also holds
     ``residuals``, the whitened residual vector of the fitted history (least-squares and
     ensemble methods use it); with ``destination.responses``, ``responses``, the simulated
-    table (:func:`responses_record`). A call already journaled (its worker died after writing the record, and
-    the cluster reran it) returns the journaled record: never simulated or recorded twice."""
+    table (:func:`responses_record`). A call already journaled (its worker died after writing
+    the record, and the cluster reran it) returns the journaled record: never simulated or
+    recorded twice."""
     store = ArtifactStore(store_root)
     journal = EvaluationJournal(store, campaign, destination.journal)
     journaled = journal.get(job.index)

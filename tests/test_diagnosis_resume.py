@@ -14,9 +14,8 @@ import sys
 import time
 from pathlib import Path
 
+import pandas as pd
 import pytest
-
-pytestmark = pytest.mark.opm
 
 BUDGET = 8
 """The minimum of one family searched from a given calibrated point: 1 run of it, then one
@@ -24,6 +23,27 @@ batch of 2 aquifer probes and 5 finite differences."""
 RUN_DIR = re.compile(r".+-(?P<n>\d+)(\.\d+)?")
 
 
+def test_a_journaled_run_is_replayed_and_one_of_other_values_refused(tmp_path):
+    """The replay without a simulator: a journaled run comes back with its responses table,
+    the same to the last bit; a run journaled with other values stops the diagnosis."""
+    from storage import ArtifactStore, EvaluationJournal
+    from tasks.diagnose import JournaledRuns
+    from tasks.simulate import responses_record
+
+    class NoRunner:
+        def submit(self, *args):
+            raise AssertionError("a journaled run was submitted")
+
+    frame = pd.DataFrame({"well": ["P1"], "days": [1.5], "quantity": ["WBHP"], "value": [0.1]})
+    EvaluationJournal(ArtifactStore(tmp_path), "d", "diagnosis-x").record(0, {
+        "params": {"a": 1.0}, "status": "COMPLETE", "E": 0.5, "responses": responses_record(frame)})
+    [ev] = JournaledRuns(str(tmp_path), "d", "diagnosis-x", NoRunner())(None, [{"a": 1.0}], "c")
+    assert ev.E == 0.5 and ev.responses.equals(frame)
+    with pytest.raises(RuntimeError, match="diverged at run 0"):
+        JournaledRuns(str(tmp_path), "d", "diagnosis-x", NoRunner())(None, [{"a": 1.1}], "c")
+
+
+@pytest.mark.opm
 def test_a_killed_diagnosis_resumes_without_simulating_a_journaled_run_again(tmp_path):
     from hmcore.cases import load_case
     from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH, ensure_synthetic_case

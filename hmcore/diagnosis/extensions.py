@@ -44,8 +44,7 @@ import numpy as np
 from hmcore.eclipse.deck_info import DeckInfo
 from hmcore.eclipse.tables import width
 from hmcore.diagnosis.recalibrate import Coordinates
-from hmcore.model.deck_values import (base_values,  # noqa: F401 (the diagnosis's start)
-                                      deck_blocks, deck_skins)
+from hmcore.model.deck_values import base_values, deck_blocks, deck_skins  # noqa: F401
 from hmcore.model.parameters import Parameter, ParameterSpace
 from hmcore.model.run_deck import critical_saturation
 from hmcore.ordering import natural_key
@@ -113,10 +112,9 @@ def open_end(c: Candidate, value: float, near: float) -> str | None:
     that end is not a physical limit of the family (:data:`LIMIT_ENDS`); else None.
 
     A recalibrated candidate that stops there fits the data only as far as its range lets it:
-    it stands in for an effect it does not describe (on the synthetic case, a moved water-oil
-    contact drove the krw exponent to 3.0, its upper end, in two of three seeds; less dissolved
-    gas drove layer 1's kv to x100) - or for a larger effect of its own kind, beyond the range
-    a user would call plausible."""
+    it stands in for an effect it does not describe - or for a larger effect of its own kind,
+    beyond the range a user would call plausible (examples: docs/diagnosis.md, "A cause at the
+    end of its range is flagged")."""
     if near < 0:
         return None
     (u,) = Coordinates([c.parameter]).to_u({c.name: value})
