@@ -60,8 +60,8 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
                 f"campaign '{campaign}' in {store_root} is bound to a case that is not in the "
                 f"store (version {bound.get('version')} of {bound.get('campaign')}/"
                 f"{bound.get('step')}), so the case cannot be compared with it. Copy that "
-                "folder into the store (archives of benchmarks/export_bench.py carry it since "
-                "2026-11-25), or choose another name")
+                "folder into the store (archives of benchmarks/export_bench.py carry it), or "
+                "choose another name")
         if case_changes:
             raise ValueError(f"campaign '{campaign}' in {store_root} was started on another "
                              f"case: {'; '.join(case_changes)}. Set the stored values in the "

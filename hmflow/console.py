@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.progress import Progress
 from rich.table import Table
 
 CONSOLE_LEVEL_VAR = "PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL"
@@ -136,8 +137,6 @@ class Watch:
         return False
 
     def _run(self) -> None:
-        from rich.progress import Progress
-
         try:
             with Progress(*self.columns, console=self.console, transient=False) as bar:
                 task = bar.add_task("", total=self.total, **self.initial)
@@ -161,6 +160,7 @@ def campaign_poll(storage: Path, campaign: str, budget: int) -> Callable[[], dic
     """Calls journaled of ``budget`` and the best valid E so far."""
 
     def poll() -> dict:
+        # storage imports pandas: keeps `hmflow --help` fast
         from storage import ArtifactStore, EvaluationJournal
 
         if not (Path(storage) / campaign / "evaluations").is_dir():
@@ -180,6 +180,7 @@ def bench_poll(storage: Path, campaigns: dict[str, tuple[str, int]], budget: int
     resume that the flow will refuse shows them as not done, never as a full bar."""
 
     def poll() -> dict:
+        # Prefect (via flows) and pandas (storage): polled only once the flow runs
         from flows.bench import same_bench, same_settings
         from storage import ArtifactStore, EvaluationJournal
 

@@ -12,7 +12,10 @@ configured a server (``PREFECT_API_URL``) gets that one, untouched.
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import importlib.util
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -30,9 +33,6 @@ def _free_port() -> int:
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
-    import ctypes
-    import signal
-
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
@@ -46,9 +46,7 @@ def temporary_api() -> Iterator[str | None]:
     if os.environ.get("PREFECT_API_URL") or sys.platform != "linux":
         yield os.environ.get("PREFECT_API_URL")  # elsewhere: Prefect's own temporary server
         return
-    import importlib.util
-
-    import httpx
+    import httpx  # only when a server is started: keeps `hmflow --help` fast
 
     # Prefect's own command, without importing Prefect (it reads its settings once, on import)
     app_dir = Path(importlib.util.find_spec("prefect").origin).parent.parent

@@ -11,7 +11,7 @@ import typer
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hmflow.cli import parse_sets
+from hmflow.cli.common import parse_sets
 
 NAMES = ["poro_mult", "permx_mult", "permy_mult", "permz_mult", "skin"]
 
@@ -121,7 +121,7 @@ def test_the_help_lists_every_kind_and_generator():
     the diagnosis): every family and every generator is there, and nothing else."""
     from hmcore.diagnosis.extensions import KINDS
     from hmcore.scenarios.generators import GENERATORS
-    from hmflow.cli import GENERATORS_HELP, KINDS_HELP
+    from hmflow.cli.common import GENERATORS_HELP, KINDS_HELP
 
     assert KINDS_HELP.split(": ", 1)[1].split(", ") == list(KINDS)
     assert sorted(GENERATORS_HELP.split(", ")) == sorted(GENERATORS)

@@ -92,7 +92,9 @@ def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_pat
 def test_prefect_reads_the_quiet_defaults_and_a_users_own_values_win(tmp_path):
     """In a fresh process, as `hmflow` starts: Prefect's console handler is at WARNING and
     server analytics are off; values the user set are left alone."""
-    probe = ("import json, logging, os, hmflow.cli\nfrom prefect import flow\n"
+    probe = ("import json, logging, os\nfrom typer.testing import CliRunner\n"
+             "from hmflow.cli import app\nCliRunner().invoke(app, ['check', '--help'])\n"
+             "from prefect import flow\n"
              "from prefect.settings import get_current_settings\n"
              "h = [h for h in logging.getLogger().handlers\n"
              "     if type(h).__name__ == 'PrefectConsoleHandler']\n"
@@ -213,7 +215,7 @@ def test_a_failing_poll_never_fails_the_command_and_the_bar_ends_on_the_last_cou
             raise ValueError("a record being replaced")
         return {"completed": 4, "best": "0.5"}
 
-    from hmflow.cli import _columns
+    from hmflow.cli.flowrun import progress_columns as _columns
 
     with term.Watch(console, poll, _columns("run"), total=4, initial={"best": "-"},
                     interval=0.01):
@@ -246,9 +248,11 @@ def test_prefect_log_lines_go_through_the_bars_console_while_it_runs():
 
 
 @pytest.mark.opm  # the built-in case is written (one OPM run) on first use
-def test_bench_and_diagnose_show_a_progress_bar(tmp_path, monkeypatch, restore_env):
+def test_bench_and_diagnose_show_a_progress_bar(tmp_path, monkeypatch, restore_env, prefect_api):
     """`hmflow bench` and `hmflow diagnose` with stand-in flows that write what the real ones
-    write (journal records; diagnosis run directories) while the command's bar polls them."""
+    write (journal records; diagnosis run directories) while the command's bar polls them (the
+    session's Prefect server as the configured API: no temporary server per command)."""
+    monkeypatch.setenv("PREFECT_API_URL", prefect_api)
     from typer.testing import CliRunner
 
     import flows.bench

@@ -306,7 +306,7 @@ def test_1000_malformed_observed_csvs(refused, example):
 def test_1000_set_values(value, name):
     import typer
 
-    from hmflow.cli import parse_sets
+    from hmflow.cli.common import parse_sets
 
     try:
         got = parse_sets([f"{name}={value}"], ["permx_mult", "skin"])

@@ -26,8 +26,11 @@ from hmcore.model.deck_values import base_values
 from hmcore.model.parameters import ParameterSpace
 from hmcore.scenarios.effects import HiddenEffect, chosen_effect, load_hidden_effects
 from hmcore.scenarios.generators import GENERATORS, draw_effect, draw_effects
-from hmcore.scenarios.hidden import (synthetic_deck_info, write_hidden_deck_case,
-                                     write_hidden_synthetic_case)
+from hmcore.scenarios.hidden import (
+    synthetic_deck_info,
+    write_hidden_deck_case,
+    write_hidden_synthetic_case,
+)
 from hmcore.scenarios.judge import judge_effects
 from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH
 

@@ -32,7 +32,7 @@ from hmcore.simulation.simulator import Simulator
 SCORING_VERSION = 2
 """The rules a call is scored by (misfit, metrics, physics checks). A campaign is bound to the
 version it started with: records scored by other rules are never mixed in one campaign.
-1: until 2026-11-24 (no cell physics checks, 0 = 0 ratio matches); 2: the paper's metrics and
+1: no cell physics checks, and a ratio of 0 to 0 counted a match; 2: the paper's metrics and
 the physics checks of :mod:`hmcore.scoring.physics`."""
 
 

@@ -10,11 +10,16 @@ import atexit
 import os
 from typing import Optional
 
-from rich.progress import (BarColumn, SpinnerColumn, TextColumn, TimeElapsedColumn,
-                           TimeRemainingColumn)
+from rich.progress import (
+    BarColumn,
+    SpinnerColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 
 from flows.inputs import input_problems
-from hmflow.cli.app import console, option, refuse
+from hmflow.cli.common import console, option, refuse
 from hmflow.server import temporary_api
 
 

@@ -1,0 +1,210 @@
+"""``hmflow run``, ``report`` and ``tables``: a calibration campaign as a Prefect flow, its
+report rebuilt from storage, and the paper's tables of a stored call."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from hmcore.calibration.registry import DEFAULT_AGENT, default_campaign_name
+from hmflow.cli.common import (
+    CASE_HELP,
+    DASK_HELP,
+    DEFAULT_STORAGE,
+    RUNNER_HELP,
+    VERBOSE_HELP,
+    app,
+    checked_campaign,
+    console,
+    fail,
+    folder,
+    load_case,
+    print_tables,
+)
+from hmflow.cli.flowrun import check_inputs, fit_workers, flow_refused, progress_columns, start_api
+from hmflow.console import Watch, campaign_poll, prefect_environment, status_text, summary_table
+
+
+@app.command()
+def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
+        agent: str = typer.Option(DEFAULT_AGENT, "--agent", help="lm (the default: least "
+                                  "squares on the whitened residuals, the benchmark's winner), "
+                                  "sac (hmflow's SAC), sac-paper (the reference paper's SAC "
+                                  "exactly: SB3 learn(), budget a multiple of --workers), "
+                                  "random, sobol, cmaes, de, bo, esmda"),
+        budget: int = typer.Option(200, "--budget", min=1, help="Simulator calls"),
+        workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
+        seed: int = typer.Option(0, "--seed"),
+        storage: Path = typer.Option(DEFAULT_STORAGE, "--storage", help="Artifact store"),
+        campaign: Optional[str] = typer.Option(None, "--campaign", callback=checked_campaign, help="Campaign name "
+                                               "(default CASE-AGENT-seedS; the same name resumes)"),
+        task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
+        dask_address: Optional[str] = typer.Option(None, "--dask-address", help=DASK_HELP),
+        fork: Optional[str] = typer.Option(None, "--fork", callback=checked_campaign,
+                                           help="Start a new campaign FORK on the case as it "
+                                           "is now, recording that it comes from --campaign "
+                                           "(which is left untouched); for a model changed "
+                                           "since that campaign started"),
+        verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
+    """Run a calibration campaign as a Prefect flow and print the best case and the tables."""
+    prefect_environment(verbose)
+    # storage imports pandas: keeps `hmflow --help` fast
+    from storage import ArtifactStore, EvaluationJournal, refuse_links
+
+    storage = folder("--storage", storage)
+    c = load_case(case)  # clear errors before any simulator time or Prefect start-up
+    workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
+    check_inputs(agent, budget, workers, task_runner)
+    if fork is not None:
+        check_fork(fork, campaign, storage.resolve())
+    start_api()
+    # Prefect: only after start_api (it reads its settings on import)
+    from flows.campaign import campaign_flow
+
+    name = campaign or default_campaign_name(c.name, agent, seed)
+    storage = storage.resolve()
+    forked_from = None
+    if fork is not None:
+        forked_from, name = campaign, fork
+    try:
+        refuse_links(storage, name)
+    except ValueError as exc:
+        fail(str(exc))
+    console.print(f"campaign [bold]{name}[/]: case {c.name}, agent {agent}, budget {budget}, "
+                  f"workers {workers}, seed {seed}, storage {storage}"
+                  + (f", forked from {forked_from}" if forked_from else ""))
+    try:
+        done = len(EvaluationJournal(ArtifactStore(storage), name).indices())
+        if done:  # (Prefect's INFO line saying so is not shown without --verbose)
+            console.print(f"resuming campaign {name}: {done} calls already journaled")
+        with Watch(console, campaign_poll(storage, name, budget), progress_columns("run"),
+                   total=budget, initial={"best": "-"}):
+            result = campaign_flow(case=str(case), agent=agent, budget=budget, workers=workers,
+                                   seed=seed, storage=str(storage), campaign=name,
+                                   task_runner=task_runner, dask_address=dask_address,
+                                   **({"forked_from": forked_from} if forked_from else {}))
+    except (ValueError, flow_refused()) as exc:
+        fail(str(exc))
+    print_report(storage, result["campaign"], result)
+
+
+def check_fork(fork: str, campaign: Optional[str], storage: Path) -> None:
+    """``--fork NEW`` needs the campaign it comes from (``--campaign OLD``, stored) and a new
+    name; exit 2 with one line otherwise, before Prefect starts."""
+    if campaign is None:
+        fail("--fork needs --campaign: the campaign the new one comes from")
+    if fork == campaign:
+        fail(f"--fork {fork}: give a new campaign name, not the one it comes from")
+    if not (storage / campaign / "campaign.json").is_file():
+        fail(f"--fork {fork}: there is no campaign '{campaign}' in {storage} to fork from")
+
+
+def print_report(storage: Path, campaign: str, result: dict | None = None) -> None:
+    """Print a stored report: best parameters, distance to truth, the paper's tables, then one
+    summary table (best E, headline numbers, failed / penalised calls, where the report is).
+    ``result``: the flow's result, whose ``report_html`` (else ``report_path``) is shown."""
+    # storage imports pandas: keeps `hmflow --help` fast
+    from storage import ArtifactStore
+
+    store = ArtifactStore(storage)
+    rep = store.latest(campaign, "report")
+    doc = rep.read_json("report.json")
+    best = doc.get("best")
+    if doc["calls"]:
+        console.print(f"\n[bold]{doc['campaign']}[/]: {doc['calls']} calls: "
+                      f"{status_text(doc.get('status_counts'))}")
+    else:
+        console.print(f"\n[bold]{doc['campaign']}[/]: no calibration campaign under this name")
+    if not best:
+        if doc["calls"]:
+            console.print("[red]no valid simulation - nothing to call best[/]")
+    else:
+        console.print(f"best call {best['index'] + 1} (calls numbered from 1): E = {best['E']:.6g}"
+                      + (f", held-back E = {best['E_heldout']:.6g}" if best.get("E_heldout") else ""))
+        for k, v in best["params"].items():
+            console.print(f"  {k:<12} = {v:.4f}")
+        for k, d in (doc.get("truth_distance") or {}).items():
+            console.print(f"  {k:<12}   truth {d['truth']:.4f}, error {d['error']:+.4f} "
+                          f"({100 * d['error_of_range']:.1f} % of range)")
+        print_tables(store.latest(campaign, "best").read_json("metrics.json")["metrics"], "Best case:")
+    diagnosis = doc.get("diagnosis")
+    if diagnosis:
+        console.print(f"diagnosis: selected {diagnosis['selected'] or 'none'}; "
+                      f"{diagnosis['verdict']}", highlight=False)
+    result = result or {}
+    where = (result.get("report_html") or result.get("report_path")
+             or rep.file("report.html" if "report.html" in rep.files else "report.md"))
+    console.print(summary_table(doc, where))
+
+
+@app.command()
+def report(storage: Path = typer.Option(DEFAULT_STORAGE, "--storage"),
+           campaign: str = typer.Option(..., "--campaign", callback=checked_campaign),
+           verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
+    """Rebuild a campaign's report from stored artifacts (zero simulator calls)."""
+    prefect_environment(verbose)
+    if not (storage / campaign).is_dir():
+        fail(f"no campaign '{campaign}' in {storage}; known: "
+             f"{sorted(p.name for p in storage.iterdir()) if storage.is_dir() else []}")
+    start_api()
+    # Prefect: only after start_api (it reads its settings on import)
+    from flows.report import report_flow
+
+    try:
+        report_flow(storage=str(storage), campaign=campaign)
+    except FileNotFoundError as exc:
+        fail(str(exc))
+    print_report(storage, campaign)
+
+
+@app.command()
+def tables(storage: Path = typer.Option(DEFAULT_STORAGE, "--storage"),
+           campaign: str = typer.Option(..., "--campaign", callback=checked_campaign),
+           call: Optional[int] = typer.Option(None, "--call", min=1, help="Call number (from 1); "
+                                              "default: the archived best case"),
+           markdown_out: Optional[Path] = typer.Option(None, "--markdown", help="Also write the "
+                                                       "tables as Markdown to this new file")) -> None:
+    """The reference paper's three tables for a stored campaign, rescored from the stored
+    summary with today's formulas (zero simulator calls)."""
+    # the reporting and storage import pandas: keeps `hmflow --help` fast
+    from hmcore.reporting.paper_tables import markdown, metrics_from_summary, paper_tables
+    from storage import ArtifactStore, EvaluationJournal
+
+    store = ArtifactStore(storage)
+    case = store.latest(campaign, "case") if (storage / campaign).is_dir() else None
+    if case is None:
+        fail(f"no campaign '{campaign}' with a stored case in {storage}; known: "
+             f"{store.campaigns() if storage.is_dir() else []}")
+    if call is None:
+        best = store.latest(campaign, "best")
+        if best is None:
+            fail(f"campaign '{campaign}' has no archived best case (no valid run yet); give "
+                 "--call N")
+        run_dir, label = best.path, f"best case (call {best.read_json('metrics.json')['index'] + 1})"
+    else:
+        rows = {r["index"]: r for r in EvaluationJournal(store, campaign).rows()}
+        if call - 1 not in rows:
+            fail(f"campaign '{campaign}' has no call {call} (it has {len(rows)} calls, "
+                 "numbered from 1)")
+        run_dir, label = Path(rows[call - 1]["run_dir"]), f"call {call}"
+    summaries = sorted(run_dir.glob("*.SMSPEC"))
+    if not summaries:
+        fail(f"{run_dir} holds no summary file (.SMSPEC): the run failed or its files were "
+             "removed")
+    doc = case.read_json("case.json")
+    fit, held = metrics_from_summary(case.read_parquet("observed.parquet"), summaries[0],
+                                     doc["wells"], doc["time_tolerance_days"],
+                                     doc.get("history_end_days"))
+    console.print(f"[bold]{campaign}[/]: {label}, {summaries[0]}")
+    print_tables(fit, "Fitted history:")
+    text = markdown(paper_tables(fit), f"{campaign}, {label}, fitted history")
+    if held:
+        print_tables(held, "Held-back history:")
+        text += "\n" + markdown(paper_tables(held), f"{campaign}, {label}, held-back history")
+    if markdown_out is not None:
+        if markdown_out.exists():
+            fail(f"{markdown_out} exists; hmflow never overwrites a file (choose a new name)")
+        markdown_out.write_text(text)
+        console.print(f"wrote {markdown_out}")

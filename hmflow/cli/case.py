@@ -1,0 +1,149 @@
+"""``hmflow init``, ``check`` and ``evaluate``: start a case for a deck, validate a case, run and
+score one simulation. hmcore alone, no Prefect."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from hmcore.errors import CaseError
+from hmcore.simulation import simulator as simulators
+from hmcore.units import deck_unit
+from hmflow.cli.common import (
+    CASE_HELP,
+    app,
+    console,
+    fail,
+    folder,
+    load_case,
+    num,
+    parse_sets,
+    print_problems,
+    print_tables,
+)
+
+
+@app.command()
+def init(deck: Path = typer.Option(..., "--deck", help="The field's deck (.DATA)"),
+         out: Optional[Path] = typer.Option(None, "--out", help="Case file to write (default: "
+                                            "<deck name>.toml here); never overwritten"),
+         summary: Optional[Path] = typer.Option(None, "--summary", help="Take the measured data "
+                                                "from this summary file (.SMSPEC, or an .RSM "
+                                                "text summary) instead of the deck's "
+                                                "WCONHIST/WCONINJH records"),
+         observed: Optional[Path] = typer.Option(None, "--observed", help="Use this observed CSV "
+                                                 "(well, days, quantity, value[, units]) as it is"),
+         name: Optional[str] = typer.Option(None, "--name", help="Case name (default: from the "
+                                            "deck's file name)")) -> None:
+    """Write a starting case for a deck: observed data from its history, default parameters."""
+    # reading a deck imports pandas: keeps `hmflow --help` fast
+    from hmcore.model.case_init import starting_case, write_starting_case
+
+    if summary is not None and observed is not None:
+        fail("give --summary or --observed, not both")
+    case_name = name or re.sub(r"[^A-Za-z0-9_.-]+", "_", deck.stem.lower())
+    out = out or Path(f"{case_name}.toml")
+    try:
+        start = starting_case(deck, case_name, observed, summary)
+        case_path, observed_path = write_starting_case(start, out, observed)
+    except CaseError as exc:
+        print_problems(f"Cannot start a case from {deck}", exc.problems)
+        raise typer.Exit(2)
+    except FileExistsError as exc:
+        fail(str(exc))
+    kinds = start.wells_by_kind()
+    console.print(f"wrote [bold]{case_path}[/] ({len(start.parameters)} parameters on, "
+                  f"{len(start.optional)} more commented out)")
+    if observed is None:
+        counts = start.observed.groupby("quantity").size().to_dict()
+        console.print(f"wrote [bold]{observed_path}[/]: {len(start.observed)} rows {counts} "
+                      f"from {start.source}, in {start.info.unit_system} units")
+    console.print(f"  wells: {len(kinds['producer'])} producer(s), {len(kinds['injector'])} "
+                  f"injector(s); faults: {len(start.info.faults)}")
+    for why in start.skipped:
+        console.print(f"  [yellow]not used[/]: {why}", highlight=False)
+    console.print(f"next: hmflow check --case {case_path}")
+
+
+@app.command()
+def check(case: str = typer.Option("synthetic", "--case", help=CASE_HELP)) -> None:
+    """Validate the case (deck, history, parameters); runs no simulation."""
+    c = load_case(case)
+    obs = c.observed
+    console.print(f"[green]OK[/] case [bold]{c.name}[/] ({c.source})")
+    console.print(f"  deck      {c.deck}: grid {'x'.join(map(str, c.info.dims))}, "
+                  f"{c.info.nactive} active cells, wells {sorted(c.info.wells)}, "
+                  f"schedule {c.info.end_days:g} days")
+    derived = obs[obs.derived].groupby("quantity").size().to_dict()
+    measured = obs[~obs.derived].groupby("quantity").size().to_dict()
+    console.print(f"  history   {c.observed_path}: {int((~obs.derived).sum())} measured rows "
+                  f"{measured}" + (f", derived {derived}" if derived else ""))
+    console.print(f"  fitting   days <= {c.history_end_days if c.history_end_days else 'end'}, "
+                  f"tolerance {c.time_tolerance_days:g} d, misfit {c.misfit.variant}")
+    console.print(f"  units     {c.info.unit_system}: " + ", ".join(
+        f"{q} {deck_unit(q, c.info.unit_system)}" for q in sorted(set(obs.quantity))))
+    if "controlled" in obs and obs.controlled.any():
+        fixed = obs[obs.controlled].groupby("quantity").size().to_dict()
+        used = sorted(set(c.informative.quantity))
+        console.print(f"  control   history-mode wells fix {fixed} row(s) by their control "
+                      f"(WCONHIST/WCONINJH CMODE): left out of E, which uses {used}")
+    for warning in c.info.warnings:
+        console.print(f"  [yellow]warning[/] OPM Flow tolerates this and runs on: {warning}",
+                      highlight=False)
+    if c.info.history.skipped:
+        console.print(f"  [yellow]note[/] {len(c.info.history.skipped)} history record(s) not "
+                      "used: " + "; ".join(c.info.history.skipped[:5]))
+    for p in c.space.parameters:
+        console.print(f"  parameter {p.name:<12} {p.kind:<9} [{p.low:g}, {p.high:g}] {p.description}")
+
+
+@app.command()
+def evaluate(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
+             set_: list[str] = typer.Option([], "--set", help="NAME=VALUE (repeatable); "
+                                             "unset parameters keep the deck's values"),
+             out: Path = typer.Option(..., "--out", help="Output directory (must not exist or be empty)"),
+             simulator: Optional[str] = typer.Option(None, "--simulator", help="'opm' or a command "
+                                                     "template like 'flow {deck} --output-dir={run_dir}'")) -> None:
+    """Run one simulation and score it: writes OUT/metrics.json and OUT/responses.parquet."""
+    # scoring and reporting import pandas: keeps `hmflow --help` fast
+    from hmcore.model.validation import simulator_problems
+    from hmcore.reporting.report import metrics_document
+    from hmcore.scoring import evaluation
+
+    c = load_case(case)
+    if simulator:
+        bad = simulator_problems(simulator, "--simulator")
+        if bad:
+            print_problems(f"--simulator {simulator!r} cannot run", bad)
+            raise typer.Exit(2)
+    values = parse_sets(set_, c.space.names)
+    bounds = c.space.check_in_bounds(values)
+    if bounds:
+        console.print(f"[yellow]note[/]: {'; '.join(bounds)} (evaluated anyway)")
+    out = folder("--out", out)
+    if out.exists() and any(out.iterdir()):
+        fail(f"{out} exists and is not empty; hmflow never overwrites results (choose a new "
+             "--out)")
+    out.mkdir(parents=True, exist_ok=True)
+    sim = (simulators.make_simulator(simulator, c.simulator.timeout_s, c.simulator.threads,
+                                     processes=c.simulator.processes) if simulator
+           else evaluation.simulator_for(c))
+    ev = evaluation.evaluate(c, values, out / "run", sim)
+    (out / "metrics.json").write_text(json.dumps(metrics_document(ev), indent=2))
+    if ev.responses is not None:
+        ev.responses.to_parquet(out / "responses.parquet", index=False)
+    console.print(f"status [bold]{ev.status.value}[/]  E = {num(ev.E, 6)}  penalty = {num(ev.penalty)}  "
+                  f"reward = {num(ev.reward, 6)}  coverage = {num(ev.coverage, 3)}  "
+                  f"simulator {ev.sim_time_s:.1f} s")
+    if ev.reason:
+        console.print(f"reason: {ev.reason}")
+    if ev.metrics:
+        print_tables(ev.metrics)
+    written = [out / "metrics.json"] + ([out / "responses.parquet"] if ev.responses is not None else [])
+    console.print("wrote " + " and ".join(map(str, written)))
+    if ev.status.value == "FAIL":
+        raise typer.Exit(1)
