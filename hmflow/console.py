@@ -47,6 +47,8 @@ def prefect_environment(verbose: bool = False) -> None:
       ``ERROR | prefect.server.services.telemetry - Failed to send telemetry``.
     * ``DO_NOT_TRACK=1``: the Prefect SDK's own usage events (and its first-run notice in an
       interactive terminal) are off too.
+    * ``PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS=120``: Prefect waits 20 s for its
+      temporary server by default; on 2 cores busy with simulations its start takes longer.
     * ``PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL=WARNING`` unless ``verbose``: Prefect's INFO lines
       (temporary server, flow and task runs) stay out of the terminal and the progress bar.
 
@@ -56,6 +58,7 @@ def prefect_environment(verbose: bool = False) -> None:
     global _quieted
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
     if verbose:
         if _quieted:
             if os.environ.get(CONSOLE_LEVEL_VAR) == QUIET_LEVEL:
