@@ -9,15 +9,13 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-
+from conftest import cli_env
 from test_diagnosis import _linear_case
 
 
@@ -214,23 +212,26 @@ def test_the_flow_honours_workers_kinds_and_the_task_runner(tmp_path, monkeypatc
 
 # ============================================================================ real OPM
 @pytest.mark.opm
-def test_from_campaign_with_a_small_budget_is_refused_and_a_larger_one_is_kept(tmp_path):
+def test_from_campaign_with_a_small_budget_is_refused_and_a_larger_one_is_kept(
+        tmp_path, small_case, prefect_api):
     """As the user typed it: `hmflow diagnose --from-campaign X --budget 8` is refused in one
     line before any simulation; with a budget that covers the minimum of one kind, exactly as
     many simulations as run directories, never more than the budget (real OPM, real Prefect;
-    the campaign's archived best is stored directly, as `hmflow run` archives it)."""
+    the campaign's archived best is stored directly, as `hmflow run` archives it). The small
+    synthetic case (conftest.small_case: the same wells and candidates' counts as the built-in
+    case, a fifth of its simulation time) and the session's Prefect server."""
     from hmcore.cases import load_case
-    from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH, ensure_synthetic_case
+    from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH
     from storage import ArtifactStore
     from tasks.case import prepare_deck
 
     def hmflow(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
-        env = {**os.environ, "COLUMNS": "150"}
+        env = cli_env(prefect_api, COLUMNS="150")
         return subprocess.run([sys.executable, "-m", "hmflow.cli", *args], cwd=tmp_path,
                               env=env, capture_output=True, text=True, timeout=timeout,
                               check=False)
 
-    shutil.copytree(Path(ensure_synthetic_case()).parent, tmp_path / "syn")
+    shutil.copytree(small_case.parent, tmp_path / "syn")
     store_root = tmp_path / "hmflow-storage"
     case = load_case(tmp_path / "syn" / "case.toml")
     prepare_deck.fn(case, "syn/case.toml", str(store_root), "b")

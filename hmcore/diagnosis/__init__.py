@@ -36,6 +36,6 @@ from hmcore.diagnosis.rounds import diagnose, diagnose_all
 
 __all__ = ["KINDS", "Candidate", "Coordinates", "Diagnosis", "DiagnosisSettings",
            "LMSettings", "LevenbergMarquardt", "ObservationSet", "Score", "analyse_residuals",
-           "budget_problem", "build_candidates", "diagnose", "diagnose_all", "estimate_noise", "extended_space",
-           "local_evaluator", "minimum_runs", "parse_kinds", "projector_basis", "run_lockstep",
-           "score_test"]
+           "budget_problem", "build_candidates", "diagnose", "diagnose_all", "estimate_noise",
+           "extended_space", "local_evaluator", "minimum_runs", "parse_kinds", "projector_basis",
+           "run_lockstep", "score_test"]

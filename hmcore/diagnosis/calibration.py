@@ -11,7 +11,8 @@ campaign's best, or round 1's recalibrated model) is simulated once:
 - phase 2 polishes the fit under that noise model (fresh finite-difference Jacobian,
   prewhitened residuals).
 
-With a budget, the ranking's calls are set aside first (:func:`hmcore.diagnosis.budget.ranking_reserve`).
+With a budget, the ranking's calls are set aside first
+(:func:`hmcore.diagnosis.budget.ranking_reserve`).
 """
 
 from __future__ import annotations

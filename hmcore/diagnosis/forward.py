@@ -104,11 +104,11 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
     doc = copy.deepcopy(doc1)
     doc["cost"]["simulations"] = d1.n_runs + d2.n_runs
     doc["cost"]["sim_time_s"] = d1.sim_time_s + d2.sim_time_s
-    base_sc = d1.scores(d1.base)
+    base_sc = d1.run_scores(d1.base)
     pair_ok = False
     if pair_run is not None:
         again = d1.rescore(pair_run)  # under the round-1 noise model: the same yardstick
-        pair_sc = d1.scores(again)
+        pair_sc = d1.run_scores(again)
         pair_ok = not p.tentative or heldout_confirms(
             base_sc["ssr_heldout"], again.ssr_heldout, base_sc["E_heldout"],
             pair_sc["E_heldout"], d1.obs.n_noise("heldout"), s)[0]
@@ -148,7 +148,8 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
         "the held-back history vetoes it" if p.tentative else by_id1[p.first]["evidence"])}
     b = {**_cause(doc2, second), "evidence": (f"round 2, with {p.first} in the model: "
                                               + _cause(doc2, second)["evidence"])}
-    doc["accepted"] = [decision.accepted_cause(a, first_conf, 1), decision.accepted_cause(b, second_conf, 2)]
+    doc["accepted"] = [decision.accepted_cause(a, first_conf, 1),
+                       decision.accepted_cause(b, second_conf, 2)]
     doc["causes"] = [a, b] + [c for c in doc1["causes"] if c["id"] not in (p.first, second)
                               and c["kind"] != "unexplained"]  # the pair explains it
     values = dict(second_conf["values"])

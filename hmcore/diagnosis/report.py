@@ -230,7 +230,8 @@ def plot_wells(obs: ObservationSet, base: pd.DataFrame, extended: pd.DataFrame |
         for ax in grid[-1]:
             ax.set_xlabel("days")
         fig.tight_layout()
-        path = Path(out_dir) / f"residuals_{''.join(ch if ch.isalnum() else '_' for ch in well)}.png"
+        safe = "".join(ch if ch.isalnum() else "_" for ch in well)
+        path = Path(out_dir) / f"residuals_{safe}.png"
         fig.savefig(path, dpi=90)
         plt.close(fig)
         out.append(path)

@@ -3,10 +3,11 @@
 :func:`analyse_residuals`, against the noise level of
 :class:`hmcore.scoring.observations.ObservationSet`: per well, response (bhp, oil, water, gas,
 gor, wct) and period (fitted history, its early and late halves, the held-back part, and
-flowing vs shut-in for BHP): bias, trend, RMS, all standardised by the noise level, with "beyond noise" flags that
-  account for the autocorrelation (effective sample size ``n (1 - rho) / (1 + rho)``), and the
-  water (WWCT crossing 0.05, see :data:`WATER_BREAKTHROUGH_SEEN`) and gas (GOR 20 % above
-  its initial value) breakthrough timing errors. The result is a JSON-serialisable dict.
+flowing vs shut-in for BHP): bias, trend, RMS, all standardised by the noise level, with
+"beyond noise" flags that account for the autocorrelation (effective sample size
+``n (1 - rho) / (1 + rho)``), and the water (WWCT crossing 0.05, see
+:data:`WATER_BREAKTHROUGH_SEEN`) and gas (GOR 20 % above its initial value) breakthrough timing
+errors. The result is a JSON-serialisable dict.
 """
 
 from __future__ import annotations

@@ -231,7 +231,8 @@ class DiagnosisSettings:
                                     f"(0, 1), got {bad}", "give e.g. (0.875,), or () for none"))
         if list(self.later_origins) != sorted(set(self.later_origins)):
             problems.append(Problem("later_origins", "the ends of the later windows roll on in "
-                                    f"time order: they must increase, got {list(self.later_origins)}",
+                                    "time order: they must increase, got "
+                                    f"{list(self.later_origins)}",
                                     f"give {tuple(sorted(set(self.later_origins)))}"))
         if not 0.0 < self.false_alarm < 1.0:
             problems.append(Problem("false_alarm", f"must lie in (0, 1), got {self.false_alarm}",

@@ -60,9 +60,9 @@ __all__ = ["Diagnosis", "EvaluateBatch", "Run", "budget_problem", "document",
 class Diagnosis:
     """One round of a diagnosis, step by step (see the module docstring).
 
-    Holds the round's :class:`hmcore.diagnosis.state.Context` and ``state``, the frozen
-    results of the steps run so far (a :class:`hmcore.diagnosis.state.Round`, replaced as each
-    step ends). The properties read the stored steps' documents and the runs the flow and the
+    Holds the round's :class:`hmcore.diagnosis.state.Context` (fixed) and its ``state``, the
+    frozen results of the steps run so far (a :class:`hmcore.diagnosis.state.Round`, replaced
+    by each step as it ends). The properties read the stored steps' documents and the runs the flow and the
     later rounds need."""
 
     def __init__(self, case: Case, evaluate_batch: EvaluateBatch,
@@ -75,17 +75,17 @@ class Diagnosis:
         if case.history_end_days is None:  # score E on the same split as the residuals
             case = dataclasses.replace(case, history_end_days=obs.history_end_days)
         log = log or (lambda msg: None)
-        self.context = Context(case, settings, obs, Coordinates(case.space.parameters),
+        self._context = Context(case, settings, obs, Coordinates(case.space.parameters),
                                Simulations(evaluate_batch, settings.budget, log), n_tests,
                                log, time.perf_counter())
-        self.state = Round()
+        self._state = Round()
 
     # ------------------------------------------------------------------ the steps
     def calibrate(self, calibrated: dict[str, float] | None = None,
                   initial: dict[str, float] | None = None, result: Any = None) -> dict:
         """Step 1 (:func:`hmcore.diagnosis.calibration.calibrate`); ``calibration.json``."""
         t0 = time.perf_counter()
-        cal = calibration.calibrate(self.context, calibrated, initial, result)
+        cal = calibration.calibrate(self._context, calibrated, initial, result)
         self._done("calibrate", t0, calibrated=cal)
         return cal.document
 
@@ -100,31 +100,31 @@ class Diagnosis:
     def rank(self) -> dict:
         """Step 3 (:func:`hmcore.diagnosis.ranking.rank`); ``ranking.json``."""
         t0 = time.perf_counter()
-        result = ranking.rank(self.context, self.state.calibrated)
+        result = ranking.rank(self._context, self._state.calibrated)
         self._done("rank", t0, ranking=result)
         return result.document
 
     def extend(self) -> dict:
         """Step 4 (:func:`hmcore.diagnosis.recalibration.extend`); ``extension.json``."""
-        st = self.state
-        result = recalibration.extend(self.context, st.calibrated, st.ranking)
-        self.state = dataclasses.replace(st, extension=result)
+        st = self._state
+        result = recalibration.extend(self._context, st.calibrated, st.ranking)
+        self._state = dataclasses.replace(st, extension=result)
         return result.document
 
     def recalibrate(self) -> dict:
         """Step 5 (:func:`hmcore.diagnosis.recalibration.recalibrate`);
         ``recalibration.json``."""
         t0 = time.perf_counter()
-        st = self.state
-        result = recalibration.recalibrate(self.context, st.calibrated, st.ranking,
+        st = self._state
+        result = recalibration.recalibrate(self._context, st.calibrated, st.ranking,
                                            st.extension)
         self._done("recalibrate", t0, recalibration=result)
         return result.document
 
     def decide(self) -> dict:
         """Step 6: the round's document (:func:`document`)."""
-        doc = document(self.context, self.state)
-        self.state = dataclasses.replace(self.state, document=doc)
+        doc = document(self._context, self._state)
+        self._state = dataclasses.replace(self._state, document=doc)
         return doc
 
     def report(self, out_dir: Path | None = None, doc: dict | None = None,
@@ -132,7 +132,7 @@ class Diagnosis:
         """Step 7: write diagnosis.json, report.md and the residual plots into ``out_dir``:
         this round's document, or ``doc`` (rounds combined) with ``extended`` the run plotted
         against the calibrated model (default: the shown candidate's)."""
-        doc = doc or self.state.document or self.decide()
+        doc = doc or self._state.document or self.decide()
         if out_dir is None:
             return {}
         shown = doc["per_well_response"]["extension"]
@@ -142,103 +142,113 @@ class Diagnosis:
                             ext.responses if ext is not None else None, self.settings.plots)
 
     def _done(self, step: str, t0: float, **results: Any) -> None:
-        self.state = dataclasses.replace(
-            self.state, timings={**self.state.timings, step: time.perf_counter() - t0},
+        self._state = dataclasses.replace(
+            self._state, timings={**self._state.timings, step: time.perf_counter() - t0},
             **results)
 
     # ------------------------------------------------------------------ what it holds
     @property
+    def context(self) -> Context:
+        """What every step works with (the case, the settings, the simulations)."""
+        return self._context
+
+    @property
+    def state(self) -> Round:
+        """The frozen results of the steps run so far."""
+        return self._state
+
+    @property
     def case(self) -> Case:
-        return self.context.case
+        return self._context.case
 
     @property
     def settings(self) -> DiagnosisSettings:
-        return self.context.settings
+        return self._context.settings
 
     @property
     def log(self) -> Callable[[str], None]:
-        return self.context.log
+        return self._context.log
 
     @property
     def evaluate_batch(self) -> EvaluateBatch:
-        return self.context.sims.evaluate_batch
+        return self._context.sims.evaluate_batch
 
     @property
     def n_runs(self) -> int:
         """Simulator calls made so far."""
-        return self.context.sims.n_runs
+        return self._context.sims.n_runs
 
     @property
     def sim_time_s(self) -> float:
-        return self.context.sims.sim_time_s
+        return self._context.sims.sim_time_s
 
     def left(self, reserve: int = 0) -> int | None:
         """Simulator calls left of the budget after ``reserve`` more (None: no budget)."""
-        return self.context.sims.left(reserve)
+        return self._context.sims.left(reserve)
 
     @property
     def obs(self) -> ObservationSet:
         """The noise model: refined from the calibrated model's residuals once calibrated."""
-        cal = self.state.calibrated
-        return cal.obs if cal is not None else self.context.obs
+        cal = self._state.calibrated
+        return cal.obs if cal is not None else self._context.obs
 
     @property
     def base(self) -> Run | None:
         """The calibrated model's run."""
-        cal = self.state.calibrated
+        cal = self._state.calibrated
         return cal.run if cal is not None else None
 
     @property
     def calibration(self) -> dict:
-        cal = self.state.calibrated
+        cal = self._state.calibrated
         return cal.document if cal is not None else {}
 
     @property
     def residuals(self) -> dict:
-        return self.state.residuals or {}
+        return self._state.residuals or {}
 
     @property
     def candidates(self) -> tuple[Candidate, ...]:
-        r = self.state.ranking
+        r = self._state.ranking
         return r.candidates if r is not None else ()
 
     @property
     def ranking(self) -> dict:
-        r = self.state.ranking
+        r = self._state.ranking
         return r.document if r is not None else {}
 
     @property
     def sensitivity(self) -> dict:
-        r = self.state.ranking
+        r = self._state.ranking
         return r.sensitivity if r is not None else {}
 
     @property
     def extension(self) -> dict:
-        e = self.state.extension
+        e = self._state.extension
         return e.document if e is not None else {}
 
     @property
     def recalibration(self) -> dict:
-        r = self.state.recalibration
+        r = self._state.recalibration
         return r.document if r is not None else {}
 
     @property
     def confirmed(self) -> dict[str, dict]:
         """Per recalibrated candidate id, its record."""
-        r = self.state.recalibration
+        r = self._state.recalibration
         return r.confirmed if r is not None else {}
 
     @property
     def confirmed_runs(self) -> dict[str, Run]:
         """Per recalibrated candidate id, the run of its recalibrated model."""
-        r = self.state.recalibration
+        r = self._state.recalibration
         return r.runs if r is not None else {}
 
     def rescore(self, run: Run) -> Run:
         """``run`` with its residuals whitened under this round's noise model."""
         return rescore(run, self.obs)
 
-    def scores(self, run: Run) -> dict:
+    def run_scores(self, run: Run) -> dict:
         """E, per-response and per-well-response misfits, SSRs of ``run`` on this case."""
         return run_scores(self.case, run)
 
