@@ -15,6 +15,8 @@ from hmcore.eclipse.includes import deck_files
 from hmcore.model.case import Case
 from hmcore.model.parameters import Parameter
 from hmcore.model.run_deck import prepare_run_deck
+from hmcore.scoring.noise_table import noise_summary
+from hmcore.scoring.observations import ObservationSet
 from storage import ArtifactStore, ArtifactVersion, code_version, refuse_links
 from storage.jsonable import to_jsonable
 
@@ -67,13 +69,17 @@ def prepare_deck(case: Case, case_ref: str, store_root: str, campaign: str) -> A
         prepare_run_deck(case.deck, {}, case.space, directory / "deck", case.info)
         (directory / "case.toml").write_bytes(case.source.read_bytes())
         case.observed.to_parquet(directory / "observed.parquet", index=False)
+        observations = ObservationSet.from_case(case)  # the rows the fit weighs, their sigma
+        observations.rows.to_parquet(directory / "observations.parquet", index=False)
+        noise_summary(observations).to_parquet(directory / "noise.parquet", index=False)
         (directory / "case.json").write_text(json.dumps(to_jsonable({
             "name": case.name, "source": str(case.source), "deck": str(case.deck),
             "observed": str(case.observed_path), "parameters": [p.model_dump() for p in case.space.parameters],
             "time_tolerance_days": case.time_tolerance_days, "history_end_days": case.history_end_days,
             "misfit": case.misfit.model_dump(), "simulator": case.simulator.model_dump(),
             "physics": case.physics.model_dump(), "wells": sorted(case.info.wells),
-            "dims": case.info.dims, "end_days": case.info.end_days}), indent=2))
+            "dims": case.info.dims, "end_days": case.info.end_days,
+            "fit_history_end_days": observations.history_end_days}), indent=2))
 
     return store.put(campaign, "case", {"case": case_ref, **case_fingerprint(case)}, write,
                      code_version())

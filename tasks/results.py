@@ -79,7 +79,9 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     best_doc = best.read_json("metrics.json") if best else None
     diagnosis_doc = diagnosis.read_json("diagnosis.json") if diagnosis is not None else None
     truth = _truth_for(case_doc)
-    markdown, doc = build_report(campaign, case_doc, table, best_doc, truth, diagnosis_doc)
+    noise = case.read_parquet("noise.parquet") if "noise.parquet" in case.files else None
+    markdown, doc = build_report(campaign, case_doc, table, best_doc, truth, diagnosis_doc,
+                                 noise)
     inputs = {"results": results.ref() if results is not None else None, "case": case.ref(),
               "report_version": REPORT_VERSION,
               "best": best.ref() if best else None}
@@ -132,12 +134,18 @@ def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, be
     observed = case.read_parquet("observed.parquet") if "observed.parquet" in case.files \
         else None
     obs = None
-    if observed is not None:
+    if "observations.parquet" in case.files:  # the rows the fit weighed, as it weighed them
+        obs_rows = case.read_parquet("observations.parquet")
+        history_end = case_doc["fit_history_end_days"]
+    elif observed is not None:  # a case stored before the weighed rows were
         end = case_doc.get("history_end_days")
         if end is None:  # ObservationSet.from_case's split
             end = default_history_end(observed.days.min(), observed.days.max())
         obs = ObservationSet.from_observed(observed, float(end),
                                            float(case_doc.get("time_tolerance_days", 30.0)))
+        obs_rows, history_end = obs.rows, obs.history_end_days
+    else:
+        obs_rows, history_end = None, case_doc.get("history_end_days")
     forecast_doc = curves.read_json("forecast.json") if curves is not None else None
     refs = {}
     reference = (forecast_doc or {}).get("reference") or campaign_reference(store, campaign)
@@ -149,8 +157,7 @@ def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, be
     return ReportInputs(
         campaign=campaign, case_doc=case_doc, agent=agent,
         table=table if table is not None else pd.DataFrame(columns=["index", "status", "E"]),
-        best=best_doc, observed=obs.rows if obs is not None else None,
-        history_end=obs.history_end_days if obs is not None else case_doc.get("history_end_days"),
+        best=best_doc, observed=obs_rows, history_end=history_end,
         curves=curves.read_parquet("curves.parquet") if curves is not None else None,
         forecast=curves.read_parquet("forecast.parquet") if curves is not None else None,
         forecast_doc=forecast_doc, references={k: v for k, v in refs.items() if v is not None},

@@ -217,6 +217,11 @@ def small_case(tmp_path_factory) -> Path:
                                     layout=SMALL_LAYOUT)
 
 
+PREFECT_API_STARTUP_S = 300
+"""How long the session's Prefect server may take to start (SQLite migrations on a busy
+machine)."""
+
+
 @pytest.fixture(scope="session")
 def prefect_api(tmp_path_factory) -> Iterator[str]:
     """The URL of one Prefect API server for the session's command-line runs.
@@ -224,39 +229,41 @@ def prefect_api(tmp_path_factory) -> Iterator[str]:
     `hmflow run`, `diagnose` and `bench` start a temporary Prefect server of their own unless
     ``PREFECT_API_URL`` is set (:mod:`hmflow.server`); a test that does not test that server
     passes ``cli_env(prefect_api)`` to the command instead and saves a server start per
-    command. The same server command as hmflow's (uvicorn with Prefect's app factory), with its
-    own PREFECT_HOME (its own SQLite database); stopped at the end of the session.
+    command. The same server as hmflow's temporary one (:func:`hmflow.server.temporary_api`:
+    uvicorn with Prefect's app factory, on the session's PREFECT_HOME); stopped at the end of
+    the session.
     """
     import httpx
 
-    home = tmp_path_factory.mktemp("prefect-api-home")
+    logs = tmp_path_factory.mktemp("prefect-api")
     app_dir = Path(importlib.util.find_spec("prefect").origin).parent.parent
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     url = f"http://127.0.0.1:{port}/api"
-    env = {**{k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")},
-           "PREFECT_HOME": str(home), "PREFECT_UI_ENABLED": "0",
-           "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
-    with open(home / "server.log", "wb") as log:  # the child keeps its own descriptor
+    env = {**{k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"},
+           "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
+           "PREFECT__SERVER_FINAL": "1"}
+    with open(logs / "server.log", "wb") as log:  # the child keeps its own descriptor
         proc = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", "--app-dir", str(app_dir), "--factory",
              "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port", str(port),
              "--log-level", "error", "--lifespan", "on"],
             env=env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     try:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + PREFECT_API_STARTUP_S
         while True:
             if proc.poll() is not None:
                 pytest.fail(f"the session's Prefect server exited with {proc.returncode}:\n"
-                            + (home / "server.log").read_text(errors="replace")[-3000:])
+                            + (logs / "server.log").read_text(errors="replace")[-3000:])
             try:
                 if httpx.get(f"{url}/health", timeout=2).status_code == 200:
                     break
             except httpx.HTTPError:
                 pass
             if time.monotonic() > deadline:
-                pytest.fail(f"the session's Prefect server did not answer on {url} in 120 s")
+                pytest.fail(f"the session's Prefect server did not answer on {url} in "
+                            f"{PREFECT_API_STARTUP_S} s")
             time.sleep(0.2)
         yield url
     finally:

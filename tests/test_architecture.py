@@ -19,6 +19,7 @@ LAYERS = (
     ("hmcore.errors", "hmcore.units", "hmcore.ordering", "storage"),
     ("hmcore.eclipse", "hmcore.simulation"),
     ("hmcore.model",),
+    ("hmcore.fields",),
     ("hmcore.scoring",),
     ("hmcore.calibration",),
     ("hmcore.diagnosis",),

@@ -1,10 +1,11 @@
-"""`hmflow bench` as a user types it: every method on the synthetic case with the real OPM
-Flow, a real Prefect server (temporary), real Parquet files; then a resumed benchmark."""
+"""`hmflow bench` as a user types it: every method on a synthetic case with the real OPM
+Flow, a real Prefect server, real Parquet files; then a resumed benchmark. The default run
+benchmarks the small synthetic case (the session's, see conftest.small_case) through the
+session's Prefect server: what is tested is the benchmark's bookkeeping, not the case."""
 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import cli_env
 
 from hmcore.calibration.methods import AGENTS
 from hmcore.reporting.benchmark import LEVELS, per_run, summary
@@ -25,8 +27,8 @@ method - all of :data:`hmcore.calibration.methods.AGENTS` - takes 7 min with 2 s
 `-m slow` runs them all; tests/test_methods.py holds every method to its budget)."""
 
 
-def hmflow(*args: str, cwd: Path, timeout: int = 900) -> subprocess.CompletedProcess:
-    env = {**os.environ, "COLUMNS": "200"}
+def hmflow(*args: str, cwd: Path, api: str, timeout: int = 900) -> subprocess.CompletedProcess:
+    env = cli_env(api, COLUMNS="200")
     return subprocess.run([sys.executable, "-m", "hmflow.cli", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout, check=False)
 
@@ -34,10 +36,12 @@ def hmflow(*args: str, cwd: Path, timeout: int = 900) -> subprocess.CompletedPro
 @pytest.mark.parametrize("methods", [
     pytest.param(METHODS, id="three-kinds"),
     pytest.param(tuple(AGENTS), id="every-method", marks=pytest.mark.slow)])
-def test_bench_runs_every_method_and_seed_with_exactly_the_budgeted_calls(tmp_path, methods):
-    common = ["bench", "--case", "synthetic", "--budget", str(BUDGET), "--workers", "2",
+def test_bench_runs_every_method_and_seed_with_exactly_the_budgeted_calls(tmp_path, methods,
+                                                                         small_case, prefect_api):
+    common = ["bench", "--case", str(small_case), "--budget", str(BUDGET), "--workers", "2",
               "--storage", str(tmp_path / "store"), "--name", "b"]
-    run = hmflow(*common, "--seeds", str(SEEDS), "--methods", ",".join(methods), cwd=tmp_path)
+    run = hmflow(*common, "--seeds", str(SEEDS), "--methods", ",".join(methods), cwd=tmp_path,
+                 api=prefect_api)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     version = sorted((tmp_path / "store" / "b" / "benchmark").glob("v*"))[-1]
     calls = pd.read_parquet(version / "calls.parquet")
@@ -79,7 +83,7 @@ def test_bench_runs_every_method_and_seed_with_exactly_the_budgeted_calls(tmp_pa
     # only the new seed and the new method run
     before = {p: p.stat().st_mtime_ns for p in (tmp_path / "store").glob("b-*-s0/evaluations/*")}
     more = hmflow(*common, "--methods", "random,sac-robust", "--seeds", str(SEEDS + 1),
-                  cwd=tmp_path)
+                  cwd=tmp_path, api=prefect_api)
     assert more.returncode == 0, more.stdout[-3000:] + more.stderr[-3000:]
     assert {p: p.stat().st_mtime_ns for p in before} == before   # nothing rewritten
     newest = sorted((tmp_path / "store" / "b" / "benchmark").glob("v*"))[-1]
@@ -110,7 +114,8 @@ def test_bench_runs_every_method_and_seed_with_exactly_the_budgeted_calls(tmp_pa
     case = ArtifactStore(other).get(bound["campaign"], bound["step"], bound["version"])
     assert case.verify() == []  # the case the benchmark is bound to came along, intact
     moved = hmflow(*common[:-4], "--storage", str(other), "--name", "b", "--methods",
-                   "random,sac-robust", "--seeds", str(SEEDS + 1), cwd=tmp_path / "other-machine")
+                   "random,sac-robust", "--seeds", str(SEEDS + 1), cwd=tmp_path / "other-machine",
+                   api=prefect_api)
     assert moved.returncode == 0, moved.stdout[-3000:] + moved.stderr[-3000:]
     assert not list(other.glob("*/runs"))  # no simulator call: every campaign was complete
     there = pd.read_parquet(sorted((other / "b" / "benchmark").glob("v*"))[-1] / "calls.parquet")

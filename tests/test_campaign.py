@@ -1,8 +1,11 @@
-"""Campaign flow end to end with real OPM runs, real Prefect (ephemeral server) and real files."""
+"""Campaign flow end to end with real OPM runs, real Prefect (ephemeral server) and real files,
+on the small synthetic case (conftest.small_case: what is tested is the campaign, not the
+case; PUNQ-S3's own runs are tested in test_punqs3 and test_simulator)."""
 
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -16,35 +19,44 @@ from hmcore.simulation.responses import read_responses
 from hmcore.simulation.simulator import OpmFlow
 from storage import ArtifactStore, EvaluationJournal
 
-PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
 FIXTURES = Path(__file__).parent / "fixtures"
-pytestmark = [pytest.mark.opm,
-              pytest.mark.skipif(not PUNQ.is_dir(), reason=f"PUNQ-S3 data not found at {PUNQ}")]
+pytestmark = [pytest.mark.opm]
 
 
-def write_case(tmp_path: Path, extra: str = "") -> Path:
-    path = tmp_path / "punq.toml"
-    path.write_text(f"""[case]
-name = "punq"
-deck = "{PUNQ / 'PUNQS3.DATA'}"
-observed = "{PUNQ / 'punqs3_observed_full_history.csv'}"
-history_end_days = 2200
-{extra}""")
+def write_case(tmp_path: Path, small_case: Path, extra: str = "") -> Path:
+    """A copy of the small synthetic case in ``tmp_path`` with ``extra`` added to its TOML.
+
+    Measured as a field's history is: its truth is left out (unknown), and GOR and water cut
+    are recorded as 0 at the shut-ins, as PUNQ-S3's measured data records them (the synthetic
+    history has no ratio where nothing flows), so the shut-in records are there to be left
+    out of the ratios' metrics and counted."""
+    shutil.copytree(small_case.parent, tmp_path / "case",
+                    ignore=shutil.ignore_patterns("truth*"))
+    path = tmp_path / "case" / small_case.name
+    path.write_text(path.read_text() + extra)
+    observed = tmp_path / "case" / "observed.csv"
+    obs = pd.read_csv(observed)
+    shut = obs[(obs.quantity == "WOPR") & (obs.value == 0.0)]
+    ratios = [shut.assign(quantity=q, units=u, value=0.0, sigma=float("nan"))
+              for q, u in (("WGOR", "sm3/sm3"), ("WWCT", "fraction"))]
+    pd.concat([obs, *ratios], ignore_index=True).sort_values(
+        ["well", "days"], kind="stable").to_csv(observed, index=False)
     return path
 
 
 @pytest.fixture(scope="module")
-def campaign(tmp_path_factory):
+def campaign(tmp_path_factory, small_case):
     """A 6-call campaign whose simulator fails (a real non-zero exit) when PERMX x > 1.5."""
     from flows.campaign import campaign_flow
 
     tmp = tmp_path_factory.mktemp("campaign")
     template = f"bash {FIXTURES / 'failing_simulator.sh'} {{deck}} {{run_dir}} {sys.executable}"
-    case = write_case(tmp, f'\n[simulator]\nbackend = "{template}"\ntimeout_s = 300\n')
+    case = write_case(tmp, small_case,
+                      f'\n[simulator]\nbackend = "{template}"\ntimeout_s = 300\n')
     storage = tmp / "store"
     result = campaign_flow(case=str(case), agent="random", budget=6, workers=2, seed=5,
-                           storage=str(storage), campaign="punq-test")
-    return {"case": case, "storage": storage, "result": result, "name": "punq-test"}
+                           storage=str(storage), campaign="c-test")
+    return {"case": case, "storage": storage, "result": result, "name": "c-test"}
 
 
 def test_parquet_has_one_row_per_call_including_failures(campaign):
@@ -74,7 +86,7 @@ def test_archived_best_case_resimulates_to_the_same_metrics(campaign, tmp_path):
     store = ArtifactStore(campaign["storage"])
     best = store.latest(campaign["name"], "best")
     stored = best.read_json("metrics.json")
-    deck = best.file("PUNQS3.DATA")
+    deck = best.file("SYNTH.DATA")
     result = OpmFlow().run(deck, tmp_path / "rerun")
     case = load_case(campaign["case"])
     s = score_responses(case, read_responses(result.summary_path, sorted(case.info.wells)))
@@ -82,7 +94,7 @@ def test_archived_best_case_resimulates_to_the_same_metrics(campaign, tmp_path):
     assert s["metrics"]["macro"]["cmatch"] == pytest.approx(stored["metrics"]["macro"]["cmatch"],
                                                              rel=1e-9)
     # and the archived summary itself scores the same
-    archived = read_responses(best.file("PUNQS3.SMSPEC"), sorted(case.info.wells))
+    archived = read_responses(best.file("SYNTH.SMSPEC"), sorted(case.info.wells))
     assert score_responses(case, archived)["E"] == pytest.approx(stored["E"], rel=1e-12)
 
 
@@ -173,12 +185,12 @@ def test_tables_command_prints_the_papers_three_tables_from_storage(campaign, tm
     assert again.exit_code == 2 and "never overwrites" in again.output
 
 
-def test_sac_paper_campaign_journals_and_resumes_with_the_real_simulator(tmp_path):
+def test_sac_paper_campaign_journals_and_resumes_with_the_real_simulator(tmp_path, small_case):
     """`sac-paper` through the campaign flow: 4 real OPM calls, 2 at a time, then resumed to 6
     (only 2 new runs, the first 4 records untouched)."""
     from flows.campaign import campaign_flow
 
-    case, storage = write_case(tmp_path), tmp_path / "store"
+    case, storage = write_case(tmp_path, small_case), tmp_path / "store"
     kw = dict(case=str(case), agent="sac-paper", workers=2, seed=3, storage=str(storage),
               campaign="paper")
     campaign_flow(budget=4, **kw)

@@ -1,7 +1,8 @@
 """The case fingerprint covers every file the deck reads, wherever it lives: editing an
 INCLUDE file outside the deck's folder and resuming is refused with the file named; an
 unrelated new file beside the deck does not block the resume (real Prefect flow; a fake
-evaluator stands in for nothing: the campaign is refused before any simulation)."""
+evaluator stands in for nothing: the campaign is refused before any simulation). The deck is
+the small synthetic case's (conftest.small_case)."""
 
 from __future__ import annotations
 
@@ -10,10 +11,8 @@ import shutil
 import pytest
 
 
-def _case_with_outside_include(tmp_path):
-    from hmcore.cases import resolve_case_path
-
-    src = resolve_case_path("synthetic").parent
+def _case_with_outside_include(tmp_path, small_case):
+    src = small_case.parent
     case_dir, shared = tmp_path / "case", tmp_path / "shared"
     case_dir.mkdir()
     shared.mkdir()
@@ -29,21 +28,21 @@ def _case_with_outside_include(tmp_path):
     return case_dir / "case.toml", shared / "pvtw.inc"
 
 
-def test_deck_files_follow_includes_outside_the_folder_and_ignore_the_rest(tmp_path):
+def test_deck_files_follow_includes_outside_the_folder_and_ignore_the_rest(tmp_path, small_case):
     from hmcore.cases import load_case
     from tasks.case import deck_file_hashes
 
-    case_file, inc = _case_with_outside_include(tmp_path)
+    case_file, inc = _case_with_outside_include(tmp_path, small_case)
     (case_file.parent / "notes.txt").write_text("unrelated")
     files = deck_file_hashes(load_case(case_file))
     assert set(files) == {"SYNTH.DATA", str(inc)}
 
 
 @pytest.mark.opm
-def test_resume_on_a_changed_include_is_refused_with_the_file_named(tmp_path):
+def test_resume_on_a_changed_include_is_refused_with_the_file_named(tmp_path, small_case):
     from flows.campaign import campaign_flow
 
-    case_file, inc = _case_with_outside_include(tmp_path)
+    case_file, inc = _case_with_outside_include(tmp_path, small_case)
     store = tmp_path / "store"
     first = campaign_flow(case=str(case_file), agent="random", budget=1, workers=1,
                           storage=str(store), campaign="inc", return_state=True)

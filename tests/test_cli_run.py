@@ -1,4 +1,7 @@
-"""`hmflow run` and `hmflow report` as a user types them (real OPM, real Prefect, real files)."""
+"""`hmflow run` and `hmflow report` as a user types them (real OPM, real Prefect, real files).
+
+The commands use the session's Prefect server (conftest.prefect_api) instead of starting one
+each: the temporary server itself is tested in test_signals and test_prefect_server."""
 
 from __future__ import annotations
 
@@ -9,20 +12,23 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
+from conftest import cli_env
 
 pytestmark = pytest.mark.opm
 
 
-def hmflow(*args: str, cwd: Path, timeout: int = 600) -> subprocess.CompletedProcess:
-    env = {**os.environ, "COLUMNS": "150"}
+def hmflow(*args: str, cwd: Path, api: str | None = None,
+           timeout: int = 600) -> subprocess.CompletedProcess:
+    env = cli_env(api, COLUMNS="150") if api else {**os.environ, "COLUMNS": "150"}
     return subprocess.run([sys.executable, "-m", "hmflow.cli", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout, check=False)
 
 
-def test_run_on_the_synthetic_default_then_report_only(tmp_path):
+def test_run_on_the_synthetic_default_then_report_only(tmp_path, prefect_api):
     run = hmflow("run", "--budget", "4", "--workers", "2", "--agent", "random", "--seed", "3",
-                 cwd=tmp_path)
+                 cwd=tmp_path, api=prefect_api)
     assert run.returncode == 0, run.stdout + run.stderr
     out = run.stdout
     assert "campaign synthetic-random-seed3" in out
@@ -34,7 +40,7 @@ def test_run_on_the_synthetic_default_then_report_only(tmp_path):
     runs_before = sorted(p.name for p in (storage / "runs").iterdir())
 
     rep = hmflow("report", "--storage", str(tmp_path / "hmflow-storage"), "--campaign",
-                 "synthetic-random-seed3", cwd=tmp_path)
+                 "synthetic-random-seed3", cwd=tmp_path, api=prefect_api)
     assert rep.returncode == 0, rep.stdout + rep.stderr
     assert "best call" in rep.stdout
     assert sorted(p.name for p in (storage / "runs").iterdir()) == runs_before
@@ -47,7 +53,7 @@ def test_run_on_the_synthetic_default_then_report_only(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('[case]\nname = "x"\ndeck = "missing.DATA"\nobserved = "missing.csv"\n')
     refused = hmflow("diagnose", "--from-campaign", "synthetic-random-seed3", "--case", str(bad),
-                     cwd=tmp_path)
+                     cwd=tmp_path, api=prefect_api)
     assert refused.returncode == 2 and "deck file not found" in refused.stderr
     source = Path(json.loads(sorted((storage / "case").glob("v*/case.json"))[-1].read_text())
                   ["source"])
@@ -57,7 +63,7 @@ def test_run_on_the_synthetic_default_then_report_only(tmp_path):
                     if "time_tolerance_days" in toml.read_text() else
                     toml.read_text().replace("[case]", "[case]\ntime_tolerance_days = 20"))
     refused = hmflow("diagnose", "--from-campaign", "synthetic-random-seed3", "--case", str(toml),
-                     cwd=tmp_path)
+                     cwd=tmp_path, api=prefect_api)
     assert refused.returncode == 2, refused.stdout + refused.stderr
     assert "calibrated on the case" in refused.stderr and "case_file" in refused.stderr
     assert not (storage / "diagnosis-runs").exists()
@@ -78,39 +84,44 @@ def test_run_on_a_bad_case_fails_before_any_simulation(tmp_path):
     assert not (tmp_path / "hmflow-storage").exists()
 
 
-def test_diagnose_on_a_bad_case_or_a_missing_campaign_fails_before_any_simulation(tmp_path):
+def test_diagnose_on_a_bad_case_or_a_missing_campaign_fails_before_any_simulation(tmp_path,
+                                                                                 prefect_api):
     bad = tmp_path / "bad.toml"
     bad.write_text('[case]\nname = "x"\ndeck = "missing.DATA"\nobserved = "missing.csv"\n')
-    run = hmflow("diagnose", "--case", str(bad), cwd=tmp_path)
+    run = hmflow("diagnose", "--case", str(bad), cwd=tmp_path, api=prefect_api)
     assert run.returncode == 2 and "deck file not found" in run.stderr
     run = hmflow("diagnose", "--from-campaign", "nope", "--storage", str(tmp_path / "store"),
-                 cwd=tmp_path)
+                 cwd=tmp_path, api=prefect_api)
     assert run.returncode == 2 and "no archived best case of campaign 'nope'" in run.stderr
     assert not (tmp_path / "hmflow-storage").exists() and not (tmp_path / "store").exists()
 
 
-def test_diagnose_from_a_campaign_goes_into_its_report_and_the_campaign_still_resumes(tmp_path):
+def test_diagnose_from_a_campaign_goes_into_its_report_and_the_campaign_still_resumes(
+        tmp_path, small_case, prefect_api):
     """`hmflow run` on a case file -> `hmflow diagnose --from-campaign` (its best, its case, no
     new case version) -> `hmflow run` resumes the same campaign; its report holds both parts
-    (real OPM, real Prefect, real files)."""
-    from hmcore.scenarios.synthetic import ensure_synthetic_case
-
-    shutil.copytree(Path(ensure_synthetic_case()).parent, tmp_path / "syn")
+    (real OPM, real Prefect, real files; the small synthetic case, conftest.small_case)."""
+    shutil.copytree(small_case.parent, tmp_path / "syn")
     args = ("--case", "syn/case.toml", "--agent", "random", "--seed", "1", "--workers", "2",
             "--campaign", "rel")
-    run = hmflow("run", "--budget", "3", *args, cwd=tmp_path)
+    run = hmflow("run", "--budget", "3", *args, cwd=tmp_path, api=prefect_api)
     assert run.returncode == 0, run.stdout + run.stderr
     # one family of candidates, a small budget: this test is about where the diagnosis goes,
     # not what it finds (test_diagnosis_hidden is)
     diag = hmflow("diagnose", "--from-campaign", "rel", "--kinds", "aquifer_strength",
-                  "--budget", "12", cwd=tmp_path, timeout=1200)
+                  "--budget", "12", cwd=tmp_path, api=prefect_api, timeout=1200)
     assert diag.returncode == 0, diag.stdout + diag.stderr
     campaign = tmp_path / "hmflow-storage" / "rel"
     assert [p.name for p in (campaign / "case").glob("v*")] == ["v0001"]  # the campaign's own
     assert (campaign / "diagnosis-report").is_dir()
     report = sorted((campaign / "report").glob("v*/report.md"))[-1].read_text()
-    assert "## Best case" in report and "## Diagnosis of case `synthetic`" in report
-    again = hmflow("run", "--budget", "4", *args, cwd=tmp_path)
+    assert "## Best case" in report and "## Diagnosis of case `synthetic-small`" in report
+    # the noise the fit weighed, stored with the case and shown in the report
+    noise = pd.read_parquet(campaign / "case" / "v0001" / "noise.parquet")
+    assert set(noise.quantity) >= {"WBHP", "WOPR"}
+    assert "## The noise the fit assumed" in report
+    assert all(f"| {q} | " in report for q in set(noise.quantity)), report
+    again = hmflow("run", "--budget", "4", *args, cwd=tmp_path, api=prefect_api)
     assert again.returncode == 0, again.stdout + again.stderr
     assert "resuming campaign rel: 3 calls already journaled" in again.stdout + again.stderr
     assert len(list((campaign / "evaluations").glob("*.json"))) == 4

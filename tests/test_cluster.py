@@ -3,7 +3,8 @@
 --dask-address ...` (real OPM Flow, real Prefect, real store); then the same with one worker
 killed (its whole process group, as when a machine goes away) in the middle of a call: the
 call is rerun on the other worker and the campaign ends with exactly the budgeted
-evaluations, none lost, none twice."""
+evaluations, none lost, none twice. The small synthetic case (conftest.small_case) and the
+session's Prefect server (conftest.prefect_api)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+from conftest import cli_env
 
 DASK = Path(sys.executable).with_name("dask")
 BUDGET = 6
@@ -79,12 +81,12 @@ def dask_cluster(root: Path, workers: int = 2):
             _kill_group(p)
 
 
-def _run(root: Path, address: str, campaign: str) -> subprocess.Popen:
+def _run(root: Path, address: str, campaign: str, case: Path, api: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "hmflow.cli", "run", "--agent", "random", "--budget",
-         str(BUDGET), "--workers", "2", "--seed", "3", "--campaign", campaign, "--storage",
-         str(root / "store"), "--task-runner", "dask", "--dask-address", address],
-        cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        [sys.executable, "-m", "hmflow.cli", "run", "--case", str(case), "--agent", "random",
+         "--budget", str(BUDGET), "--workers", "2", "--seed", "3", "--campaign", campaign,
+         "--storage", str(root / "store"), "--task-runner", "dask", "--dask-address", address],
+        cwd=root, env=cli_env(api), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
 def _records(root: Path, campaign: str) -> list[dict]:
@@ -129,12 +131,13 @@ def _worker_running(workers: list[subprocess.Popen], run_dirs: list[Path]
     return None
 
 
-def test_a_campaign_on_two_dask_workers_survives_one_killed_mid_call(tmp_path):
+def test_a_campaign_on_two_dask_workers_survives_one_killed_mid_call(tmp_path, small_case,
+                                                                     prefect_api):
     """One campaign shows both (one test since 2026-11-25, for CI's time): the calls run in the
     worker processes, and a worker killed mid-call loses and duplicates nothing."""
     with dask_cluster(tmp_path) as cluster:
         pids = _worker_pids(cluster["address"])
-        run = _run(tmp_path, cluster["address"], "killed")
+        run = _run(tmp_path, cluster["address"], "killed", small_case, prefect_api)
         runs = tmp_path / "store" / "killed" / "runs"
         victim, killed_at = None, None
         deadline = time.time() + 600

@@ -2,8 +2,9 @@
 PREFECT_HOME, free loopback port), a process work pool, the deployments of
 ``deployments/campaign.py``, a `prefect worker start` subprocess and real OPM Flow runs.
 
-The campaign (PUNQ-S3, random agent, budget 4, 2 at a time) is triggered with
-``run_deployment``; then the report-only deployment is run and must not simulate anything.
+The campaign (the small synthetic case of conftest.small_case, random agent, budget 4, 2 at
+a time) is triggered with ``run_deployment``; then the report-only deployment is run and must
+not simulate anything.
 Server, worker and every process they started are stopped in the fixtures' teardown.
 """
 
@@ -24,21 +25,16 @@ from pathlib import Path
 
 import pytest
 
-PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
-PUNQ_FILES = ("PUNQS3.DATA", "PUNQS3.GEO", "PUNQS3.PRP", "punqs3_observed_full_history.csv")
 REPO = Path(__file__).resolve().parents[1]
 PREFECT = Path(sys.executable).with_name("prefect")
 POOL = "hmflow-test-process"
 NAME = "it-nightly"
-CAMPAIGN = "punq-deploy-it"
+CAMPAIGN = "deploy-it"
 BUDGET = 4
 RUN_TIMEOUT_S = 240
 
-_missing = [n for n in PUNQ_FILES if not (PUNQ / n).is_file()]
 pytestmark = [
     pytest.mark.opm,
-    pytest.mark.skipif(bool(_missing), reason=f"PUNQ-S3 data not found in {PUNQ} (expected "
-                       f"../shared/punqs3 next to the repository; missing {_missing})"),
     pytest.mark.skipif(not PREFECT.is_file(), reason=f"prefect CLI not found at {PREFECT}"),
 ]
 
@@ -155,23 +151,22 @@ def api_settings(prefect_server):
 
 
 @pytest.fixture(scope="module")
-def deployed(api_settings, tmp_path_factory):
+def deployed(api_settings, tmp_path_factory, small_case):
     """The process pool and both deployments (campaign on a cron schedule, report-only)."""
     from deployments.campaign import (campaign_parameters, deploy_campaign, deploy_report,
                                       ensure_work_pool)
 
     tmp = tmp_path_factory.mktemp("deploy")
-    case = tmp / "punqs3.toml"
-    case.write_text(f'[case]\nname = "punqs3"\ndeck = "{PUNQ / "PUNQS3.DATA"}"\n'
-                    f'observed = "{PUNQ / "punqs3_observed_full_history.csv"}"\n'
-                    f"history_end_days = 2936\n")
+    case = small_case
     storage = tmp / "store"
     # a daily cron 12 h away from now: never due while this test runs
     cron = f"0 {(dt.datetime.now(dt.timezone.utc).hour + 12) % 24} * * *"
     pool = ensure_work_pool(POOL)
     assert ensure_work_pool(POOL).id == pool.id  # idempotent
+    # seed 1: a call within the budget that no physics check penalises, so a best case is
+    # archived (seed 0's four are all penalised on this case)
     params = campaign_parameters(case=str(case), agent="random", budget=BUDGET, workers=2,
-                                 seed=0, storage=storage, campaign=CAMPAIGN)
+                                 seed=1, storage=storage, campaign=CAMPAIGN)
     assert params["storage"] == str(storage.resolve()) and Path(params["storage"]).is_absolute()
     campaign_id = deploy_campaign(NAME, cron=cron, timezone="UTC", parameters=params,
                                   work_pool=POOL)
@@ -297,7 +292,7 @@ def test_scheduled_campaign_deployment_runs_on_a_process_worker(deployed, worker
         tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(
             id=FlowRunFilterId(any_=[flow_run.id])), limit=100)
     assert run.name.startswith(f"{CAMPAIGN}-"), run.name
-    assert {"case:punqs3", "agent:random", "seed:0"} <= set(run.tags), run.tags
+    assert {"case:synthetic-small", "agent:random", "seed:1"} <= set(run.tags), run.tags
     sims = sorted(t.name for t in tasks if t.name.startswith("sim-"))
     assert sims == [f"sim-{i:03d}" for i in range(1, BUDGET + 1)], [t.name for t in tasks]
 

@@ -69,10 +69,9 @@ def _nan_summary(truth_dir: Path, dest: Path) -> tuple[Path, Path]:
 
 
 @pytest.mark.opm
-def test_a_campaign_survives_every_fault_and_records_its_kind(tmp_path, monkeypatch):
-    from hmcore.cases import resolve_case_path
-
-    src = resolve_case_path("synthetic").parent
+def test_a_campaign_survives_every_fault_and_records_its_kind(tmp_path, monkeypatch,
+                                                             small_case):
+    src = small_case.parent  # the small synthetic case (conftest.small_case)
     case_dir = tmp_path / "case"
     case_dir.mkdir()
     for name in ("SYNTH.DATA", "observed.csv"):
@@ -84,7 +83,7 @@ def test_a_campaign_survives_every_fault_and_records_its_kind(tmp_path, monkeypa
     (case_dir / "case.toml").write_text(toml)
     # one real run of the synthetic deck, for the SMSPEC-only and NaN summaries
     real = tmp_path / "real"
-    run = subprocess.run([sys.executable, "-m", "hmflow.cli", "evaluate", "--case", "synthetic",
+    run = subprocess.run([sys.executable, "-m", "hmflow.cli", "evaluate", "--case", str(small_case),
                           "--out", str(real)], cwd=tmp_path, capture_output=True, text=True,
                          timeout=600)
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]

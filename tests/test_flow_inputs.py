@@ -1,6 +1,6 @@
 """Bad values given to a flow run (as from the UI's run form or a deployment): the run ends
 Failed before any simulation with one clear message naming what is wrong, and its log holds
-no traceback (real Prefect: a temporary server)."""
+no traceback (real Prefect: the session's server, conftest.prefect_api)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import pytest
+from conftest import cli_env
 
 SCRIPT = """
 import sys
@@ -27,11 +28,11 @@ print("STATE", state.type.value, "|", state.message)
     ("synthetic", "random", 0, "threads", "budget: Input should be greater than or equal to 1"),
 ])
 def test_a_bad_value_fails_the_run_with_one_clear_line(tmp_path, case, agent, budget, runner,
-                                                        expected):
+                                                        expected, prefect_api):
     store = tmp_path / "store"
     proc = subprocess.run([sys.executable, "-c", SCRIPT, case.format(tmp=tmp_path), agent,
                            str(budget), str(store), runner], capture_output=True, text=True,
-                          timeout=300, cwd=tmp_path)
+                          timeout=300, cwd=tmp_path, env=cli_env(prefect_api))
     out = proc.stdout + proc.stderr
     line = [ln for ln in out.splitlines() if ln.startswith("STATE ")]
     assert line and line[0].startswith("STATE FAILED |"), out

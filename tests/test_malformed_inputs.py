@@ -314,3 +314,15 @@ def test_1000_set_values(value, name):
         assert exc.exit_code == 2
     else:
         assert all(math.isfinite(v) for v in got.values())
+
+
+@pytest.mark.parametrize("key", ["float", "int", "list", "str"])
+def test_an_unknown_key_named_like_a_type_is_named(refused, key):
+    """Pydantic puts a union's alternative types ('float') in an error's location; a user's
+    unknown key of the same name must still be named (hypothesis found 'float' in CI)."""
+    data = _base()
+    data[key] = 0
+    _check_case(refused, (data, _csv(ROWS), key))
+    data = _base()
+    data["misfit"] = {key: 0}
+    _check_case(refused, (data, _csv(ROWS), f"misfit.{key}"))

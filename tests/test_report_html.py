@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
-
+from conftest import cli_env
 from test_ui_browser import CHROMIUM
 
 CAMPAIGN = "html-check"
@@ -37,15 +37,16 @@ def figures_on(page: str) -> dict[str, dict[str, str]]:
 
 
 @pytest.fixture(scope="module")
-def campaign(tmp_path_factory):
-    """A real 4-call cmaes campaign on the synthetic case (cmaes starts at the box's centre,
-    which no physics check refuses there, so there is a valid best case)."""
+def campaign(tmp_path_factory, small_case, prefect_api):
+    """A real 4-call cmaes campaign on the small synthetic case (cmaes starts at the box's
+    centre, which no physics check refuses there, so there is a valid best case), through the
+    session's Prefect server."""
     root = tmp_path_factory.mktemp("html")
     store = root / "store"
-    run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--budget", str(BUDGET),
-                          "--agent", "cmaes", "--workers", "2", "--campaign", CAMPAIGN,
-                          "--storage", str(store)], cwd=root, capture_output=True, text=True,
-                         timeout=900)
+    run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
+                          "--budget", str(BUDGET), "--agent", "cmaes", "--workers", "2",
+                          "--campaign", CAMPAIGN, "--storage", str(store)], cwd=root,
+                         env=cli_env(prefect_api), capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     return store
 

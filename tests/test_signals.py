@@ -1,6 +1,7 @@
 """SIGTERM (``kill PID``, a batch system's time limit) stops `hmflow run` as Ctrl-C does: it
 exits, the temporary Prefect server it started is gone with it, and the same command resumes
-the campaign from its journal (real OPM Flow, real Prefect)."""
+the campaign from its journal (real OPM Flow, real Prefect; the default runs use the small
+synthetic case, conftest.small_case)."""
 
 from __future__ import annotations
 
@@ -22,9 +23,10 @@ def _alive(pgid: int) -> list[str]:
 
 
 @pytest.mark.opm
-def test_sigterm_stops_the_campaign_and_its_temporary_server(tmp_path):
+def test_sigterm_stops_the_campaign_and_its_temporary_server(tmp_path, small_case):
     store = tmp_path / "store"
-    args = [sys.executable, "-m", "hmflow.cli", "run", "--agent", "random", "--budget", "40",
+    args = [sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
+            "--agent", "random", "--budget", "40",
             "--workers", "2", "--campaign", "term", "--storage", str(store)]
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)
@@ -55,12 +57,13 @@ def test_sigterm_stops_the_campaign_and_its_temporary_server(tmp_path):
 
 
 @pytest.mark.opm
-def test_kill_9_of_hmflow_leaves_no_server_and_no_simulator(tmp_path):
+def test_kill_9_of_hmflow_leaves_no_server_and_no_simulator(tmp_path, small_case):
     """SIGKILL cannot be caught: what hmflow started must die with it by itself (the
     temporary Prefect server and the simulators are killed by the kernel, PR_SET_PDEATHSIG),
     and the campaign resumes from its journal."""
     store = tmp_path / "store"
-    args = [sys.executable, "-m", "hmflow.cli", "run", "--agent", "random", "--budget", "40",
+    args = [sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
+            "--agent", "random", "--budget", "40",
             "--workers", "2", "--campaign", "k9", "--storage", str(store)]
     log = tmp_path / "hmflow.log"
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=log.open("w"), stderr=subprocess.STDOUT,

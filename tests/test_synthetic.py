@@ -6,6 +6,7 @@ Runs OPM Flow for real (three single-threaded runs of a few seconds each, one at
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 import tomllib
@@ -123,6 +124,50 @@ def test_fields_depend_only_on_the_seed() -> None:
     assert np.argmin(means) == 4 and np.argmax(means) == 1
     assert np.corrcoef(logk.ravel(), a.poro.ravel())[0, 1] > 0.6
     assert np.all((a.poro > 0.04) & (a.poro < 0.36)) and np.all(a.permz < a.permx)
+
+
+BUILT_IN_DECK_SHA256 = "551e3d302f0d4ba1973b50e8414396b7f94e17f424928c39f721944f0e241520"
+"""SYNTH.DATA of seed 0 as synthetic-v1 writes it (its figures are published): a change to the
+generator that changes it must bump GENERATOR_VERSION."""
+
+
+def test_the_built_in_deck_is_unchanged_by_the_layouts() -> None:
+    """The layouts are options: the default renders the seed-0 deck byte for byte as before."""
+    field_rng, _ = np.random.default_rng(0).spawn(2)
+    deck = syn_deck.render_deck(syn_deck.make_fields(field_rng), 0)
+    assert syn_deck.GENERATOR_VERSION == "synthetic-v1"
+    assert hashlib.sha256(deck.encode()).hexdigest() == BUILT_IN_DECK_SHA256
+    assert syn_deck.render_deck(syn_deck.make_fields(np.random.default_rng(0).spawn(2)[0],
+                                                     syn_deck.DEFAULT_LAYOUT),
+                                0, syn_deck.DEFAULT_LAYOUT) == deck
+
+
+def test_the_small_layout_keeps_the_wells_shut_ins_and_breakthroughs(small_case: Path) -> None:
+    """SMALL_LAYOUT, as the session's small case (conftest.small_case): 10 x 10 x 5 cells over
+    3 years, the same four producers on rate control, a shut-in after the history end, gas
+    breakthrough in the crestal wells and water in a flank well, its own case name."""
+    layout = syn_deck.SMALL_LAYOUT
+    folder = small_case.parent
+    cfg = tomllib.loads(small_case.read_text())["case"]
+    assert cfg["name"] == "synthetic-small" and cfg["deck"] == syn.DECK_NAME
+    assert cfg["history_end_days"] == syn_deck.default_history_end_days(layout)
+    meta = json.loads((folder / syn.TRUTH_NAME).read_text())
+    assert meta["layout"] == {"name": "small", "cells": [10, 10, 5], "cell_size_m": 200.0,
+                              "years": 3}
+    assert meta["parameters"] == syn.SYNTHETIC_TRUTH
+    deck = (folder / syn.DECK_NAME).read_text()
+    assert "\nDIMENS\n 10 10 5 /" in deck and "small layout" in deck.splitlines()[0]
+    assert [w.name for w in layout.wells] == [w.name for w in syn.WELLS]
+    steps = syn_deck.report_steps(layout)
+    assert len(steps) == 12 * 3 + 3 and steps[-1].days == 1096.0
+    assert any(not s.open_wells and s.days > cfg["history_end_days"] for s in steps)
+    bt = meta["breakthrough_days"]
+    assert bt["PROD1"]["gas_days"] and bt["PROD2"]["gas_days"]
+    assert any(bt[w]["water_days"] for w in ("PROD3", "PROD4"))
+    observed = pd.read_csv(folder / syn.OBSERVED_NAME)
+    assert sorted(observed.well.unique()) == sorted(w.name for w in layout.wells)
+    shut = observed[(observed.quantity == "WBHP") & (observed.flowing == 0)]
+    assert shut.well.nunique() == 4 and shut.days.nunique() == 3
 
 
 # ------------------------------------------------------------------------------ deck

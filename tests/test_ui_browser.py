@@ -45,10 +45,13 @@ def render_showing(url: str, needles: list[str], tries: int = 3) -> str:
 
 
 @pytest.fixture(scope="module")
-def finished_campaign(tmp_path_factory):
+def finished_campaign(tmp_path_factory, small_case):
+    """A 3-call campaign on the small synthetic case (conftest.small_case), run by `hmflow run`
+    against a real `prefect server start` with its UI."""
     root = tmp_path_factory.mktemp("ui")
     with serve_prefect(root, ui=True) as server:
-        run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--budget", str(BUDGET),
+        run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case",
+                              str(small_case), "--budget", str(BUDGET),
                               "--agent", "random", "--seed", "1", "--campaign", CAMPAIGN,
                               "--storage", str(root / "store")], cwd=root, env=server["env"],
                              capture_output=True, text=True, timeout=600)
@@ -75,7 +78,7 @@ def test_ui_shows_the_named_run_its_call_numbered_tasks_and_artifacts(finished_c
     assert run.name.startswith(f"{CAMPAIGN}-") and run.name in page
     for i in range(1, BUDGET + 1):
         assert f"sim-{i:03d}" in page, f"sim-{i:03d} not on the flow run page"
-    for tag in ("case:synthetic", "agent:random", "seed:1"):
+    for tag in ("case:synthetic-small", "agent:random", "seed:1"):
         assert tag in page
     png = shot.read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 30_000  # a page, not a blank

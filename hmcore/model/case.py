@@ -39,6 +39,10 @@ observed history is collected and raised together as one :class:`CaseError`::
     failure_penalty = 10.0
     violation_weight = 5.0            # P = weight * sum of the excesses
 
+    [noise.WBHP]                      # optional: the measurement error, per quantity (and
+    absolute = 2.0                    # per well: [noise.WBHP.wells.PRO-1]); absolute, or
+    correlation_days = 60             # relative (+ relative_min); see hmcore.model.noise_section
+
     [[parameters]]                    # optional; default: the five reference parameters
     name = "permx_mult"
     kind = "multiply"
@@ -50,7 +54,7 @@ observed history is collected and raised together as one :class:`CaseError`::
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import date, datetime
 from pathlib import Path
 from typing import Literal
@@ -61,6 +65,13 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from hmcore.eclipse.deck_info import DeckInfo
 from hmcore.eclipse.history import controlled_mask
 from hmcore.errors import CaseError, Problem
+from hmcore.model.noise_section import (
+    NoiseSection,
+    QuantityNoise,
+    noise_name_problems,
+    valid_statements,
+    zero_error_problems,
+)
 from hmcore.model.observed import inspect_observed
 from hmcore.model.parameters import Parameter, ParameterSpace, reference_parameters
 from hmcore.model.validation import (
@@ -143,6 +154,7 @@ class CaseFile(BaseModel):
     simulator: SimulatorSettings = SimulatorSettings()
     physics: PhysicsSettings = PhysicsSettings()
     parameters: tuple[Parameter, ...] | None = None
+    noise: dict[str, QuantityNoise] = {}
 
 
 @dataclass(frozen=True)
@@ -161,6 +173,8 @@ class Case:
     misfit: MisfitSettings
     simulator: SimulatorSettings
     physics: PhysicsSettings
+    noise: NoiseSection = field(default_factory=dict)
+    """The ``[noise]`` statements: quantity -> stated measurement error."""
 
     @property
     def informative(self) -> pd.DataFrame:
@@ -355,6 +369,11 @@ def load_case_file(case: str | Path) -> Case:
         problems.extend(parameter_problems(clean, info, where))
     if info is not None and observed is not None:
         problems.extend(_check_observed_against_deck(observed, info, observed_path))
+    problems.extend(noise_name_problems(data.get("noise"), str(path),
+                                        info.wells if info is not None else None))
+    if observed is not None:
+        problems.extend(zero_error_problems(valid_statements(data.get("noise")), str(path),
+                                            observed))
     end = cfg.case.history_end_days if cfg else None
     if isinstance(end, date) and info is not None:
         end = (datetime.combine(end, datetime.min.time()) - info.start).total_seconds() / 86400
@@ -384,7 +403,7 @@ def load_case_file(case: str | Path) -> Case:
         raise CaseError([_before_first(path, end, float(informative.days.min()))])
     return Case(cfg.case.name, path, deck.resolve(), observed_path.resolve(), observed,
                 ParameterSpace(parameters=tuple(params)), info, cfg.case.time_tolerance_days,
-                end, cfg.misfit, cfg.simulator, cfg.physics)
+                end, cfg.misfit, cfg.simulator, cfg.physics, dict(cfg.noise))
 
 
 def _before_first(path: Path, end: float, first: float) -> Problem:
@@ -415,8 +434,14 @@ def _validation_problems(exc: ValidationError, path: Path) -> list[Problem]:
     mistyped key."""
     merged: dict[str, list[dict]] = {}
     for err in exc.errors():
-        loc = [x for x in err["loc"] if not (isinstance(x, str) and (
-            x in _TYPE_TAGS or "[" in x))]
+        # a union's alternatives add their type ('float', 'list[...]') to the location; the
+        # last item of an extra key's location is the user's key, whatever its name
+        *path_items, last = err["loc"] or ("",)
+        keep_last = err.get("type") == "extra_forbidden"
+        loc = [x for x in (path_items if keep_last else [*path_items, last])
+               if not (isinstance(x, str) and (x in _TYPE_TAGS or "[" in x))]
+        if keep_last:
+            loc.append(last)
         merged.setdefault(".".join(str(x) for x in loc), []).append(err)
     out = []
     for key, errs in merged.items():
@@ -448,7 +473,7 @@ def _hint(err: dict, key: str = "") -> str:
 
 
 _SECTIONS = {"case": CaseSection, "misfit": MisfitSettings, "simulator": SimulatorSettings,
-             "physics": PhysicsSettings, "parameters": Parameter}
+             "physics": PhysicsSettings, "parameters": Parameter, "noise": QuantityNoise}
 
 
 def _near_key(key: str) -> str:

@@ -15,6 +15,7 @@ import pandas as pd
 from hmcore.diagnosis.report import markdown_report
 from hmcore.reporting import paper_tables
 from hmcore.scoring.metrics import category_table, ratio_table, well_table
+from hmcore.scoring.noise_table import noise_markdown
 from storage.jsonable import to_jsonable
 
 
@@ -66,12 +67,15 @@ def parameter_distance(found: dict[str, float], truth: dict[str, float],
 
 def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best: dict | None,
                  truth: dict[str, float] | None,
-                 diagnosis: dict | None = None) -> tuple[str, dict]:
+                 diagnosis: dict | None = None,
+                 noise: pd.DataFrame | None = None) -> tuple[str, dict]:
     """Markdown report and its JSON twin from stored results (no simulator involved).
 
     ``table``: the consolidated evaluations (None: the campaign ran no calibration, e.g. a
     diagnosis alone); ``diagnosis``: the campaign's latest ``diagnosis.json``, appended as a
-    section (its plots are linked by file name, stored beside the report)."""
+    section (its plots are linked by file name, stored beside the report); ``noise``: the
+    noise the fit assumed (:func:`hmcore.scoring.noise_table.noise_summary`, stored with the
+    campaign's case), a section of its own."""
     if table is None:
         markdown = "\n".join([f"# hmflow campaign `{campaign}`", "",
                                f"Case **{case_doc['name']}** ({case_doc['source']}); no "
@@ -79,6 +83,9 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
         doc: dict = {"campaign": campaign, "case": case_doc["name"], "calls": 0, "best": None}
     else:
         markdown, doc = _campaign_report(campaign, case_doc, table, best, truth)
+    if noise is not None and not noise.empty:
+        markdown += "\n" + noise_markdown(noise)
+        doc["noise"] = to_jsonable(noise.to_dict(orient="records"))
     if diagnosis is not None:
         markdown += "\n" + markdown_report(diagnosis, level=2)
         sel = diagnosis.get("selected")

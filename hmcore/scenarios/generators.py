@@ -1,12 +1,12 @@
 """Hidden effects the candidate library does not hold as they are: other geometry, another
-mechanism of a known family, two effects at once, or no family at all (issue 18).
+mechanism of a known family, two effects at once, or no family at all.
 
 The library searches a skin on one well, a box of +-3 cells centred on a well, a whole layer,
 a full fault plane midway between well columns, a power law on krw / krg, an aquifer's
 strength. A diagnosis that only finds effects drawn from that list proves little, so these
-generators draw, from a seed (the relative-permeability family has since grown a factor and a
-critical-saturation shift on each curve, so ``relperm_scaling`` and ``relperm_endpoint`` now
-ask it to tell its own parameters apart - and the globals not to absorb them):
+generators draw, from a seed (the relative-permeability family has a factor and a
+critical-saturation shift on each curve, so ``relperm_scaling`` and ``relperm_endpoint`` ask
+it to tell its own parameters apart - and the globals not to absorb them):
 
 ==================== ===================================================== ==================
 generator            the truth hides                                        a right answer
@@ -323,6 +323,6 @@ def _dated_productivity(rng, info: DeckInfo, space: ParameterSpace,
 def _late_productivity(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
     """A productivity change from 77-85 % of the schedule on: after a fitted window of 75 % of
     the record, so a diagnosis that stops at that window sees none of it in the history it
-    fits, only in the held-back part (issue 18, point 1: take the longer record). (The sweep's
-    rows before 2026-11-26 14:00 drew it from 60-70 %, inside the first window.)"""
+    fits, only in the held-back part: found only by a diagnosis that takes the longer record
+    (its later window)."""
     return _dated_productivity(rng, info, space, (0.77, 0.85), "late_productivity")

@@ -40,9 +40,12 @@ import pandas as pd
 from hmcore.model.parameters import ParameterSpace
 from hmcore.model.run_deck import prepare_run_deck
 from hmcore.scenarios.synthetic_deck import (
+    DEFAULT_LAYOUT,
     GENERATOR_VERSION,
+    NZ,
     START_DATE,
-    WELLS,
+    WELLS,  # noqa: F401 - re-exported: the built-in case's wells
+    Layout,
     default_history_end_days,
     make_fields,
     render_deck,
@@ -106,7 +109,7 @@ def resolve_truth(truth: dict[str, float] | None, space: ParameterSpace) -> dict
     return values
 
 
-def read_truth_responses(summary_path: Path) -> pd.DataFrame:
+def read_truth_responses(summary_path: Path, layout: Layout = DEFAULT_LAYOUT) -> pd.DataFrame:
     """Noise-free well responses at every report step: columns well, days, quantity, value.
 
     ``days`` are rounded to 0.01 (the summary stores TIME as float32); values are the summary's
@@ -118,7 +121,7 @@ def read_truth_responses(summary_path: Path) -> pd.DataFrame:
     days = np.round(np.asarray(smry["TIME"], dtype=float), 2)
     frames = [pd.DataFrame({"well": w.name, "days": days, "quantity": q,
                             "value": np.asarray(smry[f"{q}:{w.name}"], dtype=float) + 0.0})
-              for w in WELLS for q in TRUTH_QUANTITIES]
+              for w in layout.wells for q in TRUTH_QUANTITIES]
     return pd.concat(frames, ignore_index=True)
 
 
@@ -185,7 +188,8 @@ def noisy_series(days: np.ndarray, wopr: np.ndarray, wbhp: np.ndarray, wgor: np.
     return out, gas_bt, water_bt
 
 
-def make_observed(truth: pd.DataFrame, rng: np.random.Generator) -> tuple[pd.DataFrame, dict]:
+def make_observed(truth: pd.DataFrame, rng: np.random.Generator,
+                  layout: Layout = DEFAULT_LAYOUT) -> tuple[pd.DataFrame, dict]:
     """Noisy observed history from noise-free ``truth`` (see :func:`read_truth_responses`).
 
     Returns the long table with columns ``OBSERVED_COLUMNS`` and per-well breakthrough days.
@@ -197,7 +201,7 @@ def make_observed(truth: pd.DataFrame, rng: np.random.Generator) -> tuple[pd.Dat
     wide = truth.pivot_table(index=["well", "days"], columns="quantity", values="value")
     rows: list[pd.DataFrame] = []
     breakthrough: dict[str, dict[str, float | None]] = {}
-    for w in WELLS:
+    for w in layout.wells:
         t = wide.loc[w.name]
         days = t.index.to_numpy(dtype=float)
         series, gas_bt, water_bt = noisy_series(
@@ -222,8 +226,8 @@ def _write_csv(df: pd.DataFrame, path: Path, float_format: str) -> None:
     df.to_csv(path, index=False, float_format=float_format, lineterminator="\n")
 
 
-def _case_toml(history_end_days: float) -> str:
-    return (f'[case]\nname = "synthetic"\ndeck = "{DECK_NAME}"\nobserved = "{OBSERVED_NAME}"\n'
+def _case_toml(history_end_days: float, name: str) -> str:
+    return (f'[case]\nname = "{name}"\ndeck = "{DECK_NAME}"\nobserved = "{OBSERVED_NAME}"\n'
             f"time_tolerance_days = 30\nhistory_end_days = {history_end_days:g}\n")
 
 
@@ -233,7 +237,8 @@ def _case_toml(history_end_days: float) -> str:
 def write_synthetic_case(dest: Path, seed: int = 0, *, truth: dict[str, float] | None = None,
                          truth_space: ParameterSpace | None = None,
                          simulator: Simulator | None = None,
-                         history_end_days: float | None = None) -> Path:
+                         history_end_days: float | None = None,
+                         layout: Layout = DEFAULT_LAYOUT) -> Path:
     """Write deck(s), observed.csv, truth.json and case.toml into dest; return case.toml path.
 
     ``dest`` gets ``SYNTH.DATA`` (base deck with the prior fields of ``seed`` and skin 0),
@@ -246,32 +251,35 @@ def write_synthetic_case(dest: Path, seed: int = 0, *, truth: dict[str, float] |
     defaults to :class:`hmcore.simulation.simulator.OpmFlow`; ``history_end_days`` (days since START)
     defaults to the report step nearest 75 % of the schedule. Everything is deterministic for a
     seed: the fields and the noise come from ``numpy.random.default_rng(seed)``.
+    ``layout`` sizes the reservoir (:class:`hmcore.scenarios.synthetic_deck.Layout`); another
+    than the default names the case ``synthetic-<layout name>`` and is recorded in truth.json.
     Raises :class:`hmcore.errors.SimulationError` when the truth run fails.
     """
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     space = truth_space or ParameterSpace.reference()
     values = resolve_truth(truth, space)
-    last_day = report_steps()[-1].days
-    end = default_history_end_days() if history_end_days is None else float(history_end_days)
+    last_day = report_steps(layout)[-1].days
+    end = (default_history_end_days(layout) if history_end_days is None
+           else float(history_end_days))
     if not 0.0 < end <= last_day:
         raise ValueError(f"history_end_days={end} must be in (0, {last_day:g}] days")
     sim = simulator or OpmFlow()
     field_rng, noise_rng = np.random.default_rng(seed).spawn(2)
 
     deck = dest / DECK_NAME
-    deck.write_text(render_deck(make_fields(field_rng), seed))
+    deck.write_text(render_deck(make_fields(field_rng, layout), seed, layout))
     with tempfile.TemporaryDirectory(prefix="hmflow-synthetic-truth-") as tmp:
         run_deck = prepare_run_deck(deck, values, space, Path(tmp) / "deck")
         result = sim.run(run_deck, Path(tmp) / "run")
-        truth_df = read_truth_responses(result.summary_path)
-    expected = [s.days for s in report_steps()]
+        truth_df = read_truth_responses(result.summary_path, layout)
+    expected = [s.days for s in report_steps(layout)]
     got = sorted(set(truth_df["days"]))
     if got != expected:
         raise RuntimeError(f"the truth run reported days {got[:3]}...{got[-3:]} ({len(got)}), "
                            f"expected the {len(expected)} report steps of the schedule")
 
-    observed, breakthrough = make_observed(truth_df, noise_rng)
+    observed, breakthrough = make_observed(truth_df, noise_rng, layout)
     _write_csv(observed, dest / OBSERVED_NAME, "%.6g")
     _write_csv(truth_df, dest / TRUTH_RESPONSES_NAME, "%.9g")
 
@@ -286,9 +294,13 @@ def write_synthetic_case(dest: Path, seed: int = 0, *, truth: dict[str, float] |
         "files": {"deck": DECK_NAME, "observed": OBSERVED_NAME,
                   "truth_responses": TRUTH_RESPONSES_NAME},
     }
+    default = layout == DEFAULT_LAYOUT
+    if not default:
+        meta["layout"] = {"name": layout.name, "cells": [layout.nx, layout.ny, NZ],
+                          "cell_size_m": layout.dx_m, "years": layout.n_years}
     (dest / TRUTH_NAME).write_text(json.dumps(meta, indent=2) + "\n")
     case = dest / CASE_NAME
-    case.write_text(_case_toml(end))
+    case.write_text(_case_toml(end, "synthetic" if default else f"synthetic-{layout.name}"))
     return case
 
 

@@ -6,12 +6,17 @@ a small gas cap (GOC 2008 m) over saturated oil; a Fetkovich aquifer on the stee
 the water-oil contact (WOC 2060 m). Four vertical producers on oil-rate control with a 120 bar
 BHP floor; monthly report steps for 7 years, every well shut in for 14 days each year. The truth
 run, the noisy history and the case files: :mod:`hmcore.scenarios.synthetic`.
+
+That is :data:`DEFAULT_LAYOUT`, the built-in case. A :class:`Layout` sizes the same reservoir
+otherwise, for tests: :data:`SMALL_LAYOUT` (10 x 10 x 5 cells of 200 m, 3 years) runs about
+five times faster and keeps the gas cap, the aquifer, the shut-ins and a gas and a water
+breakthrough; :data:`SHORT_LAYOUT` is the built-in grid over 3 years.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -105,6 +110,48 @@ SHUTIN_DAYS = 14
 HISTORY_FRACTION = 1.0 - HELD_BACK_FRACTION
 """Default ``history_end_days``: the report step nearest this fraction of the schedule."""
 
+
+@dataclass(frozen=True)
+class Layout:
+    """The size of the synthetic reservoir: ``nx`` x ``ny`` cells of ``dx_m`` metres, a schedule
+    of ``n_years`` and the ``wells``.
+
+    Whatever the layout, the reservoir is the same 2 km x 2 km anticline with the same layers,
+    contacts, fluids and aquifer. Lengths in cells are the default's metres over ``dx_m``:
+    ``crest_ij`` (0-based cell-centre I, J), ``relief_cells`` (over which the depth grows by
+    ``RELIEF_I_M`` and ``RELIEF_J_M``), and the smoothing of ln(PERMX) (``correlation_cells``),
+    of porosity's own part (``poro_cells``) and of PERMZ/PERMX (``kvkh_cells``); the wells sit in
+    the cells holding the default wells' positions.
+    """
+
+    name: str
+    nx: int
+    ny: int
+    dx_m: float
+    crest_ij: tuple[float, float]
+    relief_cells: float
+    correlation_cells: float
+    poro_cells: float
+    kvkh_cells: float
+    n_years: int
+    wells: tuple[WellSpec, ...]
+
+
+DEFAULT_LAYOUT = Layout("default", NX, NY, DX_M, CREST_IJ, 10.0, CORRELATION_CELLS, 1.5, 2.0,
+                        N_YEARS, WELLS)
+"""The built-in synthetic case: 20 x 20 x 5 cells of 100 m, 7 years."""
+SMALL_LAYOUT = Layout(
+    "small", 10, 10, 200.0, (4.5, 4.75), 5.0, 1.5, 0.75, 1.0, 3,
+    (WellSpec("PROD1", 3, 6, (2, 3, 4, 5), 200.0),   # crest, west: gas coning
+     WellSpec("PROD2", 8, 5, (2, 3, 4, 5), 200.0),   # crest, east: gas coning
+     WellSpec("PROD3", 5, 3, (1, 2, 3), 150.0),      # south flank
+     WellSpec("PROD4", 6, 9, (1, 2, 3, 4), 140.0)))  # north flank: water from the start
+"""10 x 10 x 5 cells of 200 m, 3 years (a shut-in after the default history end): about a
+fifth of the default's simulation time, for tests of logic."""
+SHORT_LAYOUT = replace(DEFAULT_LAYOUT, name="short", n_years=3)
+"""The built-in grid and wells over 3 years: the default's reservoir and early history (what a
+diagnosis of it sees there) at about half its simulation time."""
+
 # ==============================================================================================
 # property fields
 # ==============================================================================================
@@ -121,68 +168,74 @@ class SyntheticFields:
     permz: np.ndarray
 
 
-def _gaussian_random_field(rng: np.random.Generator, sigma_cells: float) -> np.ndarray:
-    """White noise on one layer (NY, NX) smoothed with a Gaussian kernel of ``sigma_cells``
+def _gaussian_random_field(rng: np.random.Generator, sigma_cells: float,
+                           layout: Layout) -> np.ndarray:
+    """White noise on one layer (ny, nx) smoothed with a Gaussian kernel of ``sigma_cells``
     cells (mirrored edges), rescaled to zero mean and unit variance."""
     from scipy.ndimage import gaussian_filter
 
-    g = gaussian_filter(rng.standard_normal((NY, NX)), sigma_cells, mode="reflect")
+    g = gaussian_filter(rng.standard_normal((layout.ny, layout.nx)), sigma_cells, mode="reflect")
     return (g - g.mean()) / g.std()
 
 
-def _condition_to_wells(z: np.ndarray, sigma_cells: float) -> np.ndarray:
+def _condition_to_wells(z: np.ndarray, sigma_cells: float, layout: Layout) -> np.ndarray:
     """Condition a unit Gaussian field to 0 (the layer mean) in the well columns.
 
     Simple kriging update ``z + sum_w lambda_w(x) * (0 - z(w))`` with the covariance of
     Gaussian-smoothed white noise, ``exp(-d^2 / (4 sigma^2))`` (d in cells): the wells see the
     layer-mean rock for every seed while the field between them keeps its variability.
     """
-    jj, ii = np.meshgrid(np.arange(NY, dtype=float), np.arange(NX, dtype=float), indexing="ij")
-    pts = np.array([(w.j - 1.0, w.i - 1.0) for w in WELLS])
+    jj, ii = np.meshgrid(np.arange(layout.ny, dtype=float), np.arange(layout.nx, dtype=float),
+                         indexing="ij")
+    pts = np.array([(w.j - 1.0, w.i - 1.0) for w in layout.wells])
 
     def cov(dj: np.ndarray, di: np.ndarray) -> np.ndarray:
         return np.exp(-(dj ** 2 + di ** 2) / (4.0 * sigma_cells ** 2))
 
     k = cov(pts[:, None, 0] - pts[None, :, 0], pts[:, None, 1] - pts[None, :, 1])
-    c = np.stack([cov(jj - pj, ii - pi) for pj, pi in pts])  # (wells, NY, NX)
+    c = np.stack([cov(jj - pj, ii - pi) for pj, pi in pts])  # (wells, ny, nx)
     lam = np.linalg.solve(k, c.reshape(len(pts), -1)).reshape(c.shape)
     at_wells = z[pts[:, 0].astype(int), pts[:, 1].astype(int)]
     return z - np.tensordot(at_wells, lam, axes=1)
 
 
-def structure_tops() -> np.ndarray:
-    """Depth of the top of every cell, shape (NZ, NY, NX), metres: an elongated anticline."""
-    jj, ii = np.meshgrid(np.arange(NY, dtype=float), np.arange(NX, dtype=float), indexing="ij")
-    ci, cj = CREST_IJ
-    top = (CREST_DEPTH_M + RELIEF_I_M * ((ii - ci) / 10.0) ** 2
-           + RELIEF_J_M * ((jj - cj) / 10.0) ** 2)
+def structure_tops(layout: Layout = DEFAULT_LAYOUT) -> np.ndarray:
+    """Depth of the top of every cell, shape (NZ, ny, nx), metres: an elongated anticline."""
+    jj, ii = np.meshgrid(np.arange(layout.ny, dtype=float), np.arange(layout.nx, dtype=float),
+                         indexing="ij")
+    ci, cj = layout.crest_ij
+    top = (CREST_DEPTH_M + RELIEF_I_M * ((ii - ci) / layout.relief_cells) ** 2
+           + RELIEF_J_M * ((jj - cj) / layout.relief_cells) ** 2)
     offsets = np.concatenate([[0.0], np.cumsum(LAYER_DZ_M)[:-1]])
     return np.stack([top + off for off in offsets])
 
 
-def make_fields(rng: np.random.Generator) -> SyntheticFields:
+def make_fields(rng: np.random.Generator, layout: Layout = DEFAULT_LAYOUT) -> SyntheticFields:
     """Prior fields drawn from ``rng``: layered log-normal PERMX, porosity tied to ln(PERMX).
 
     Per layer k: ``ln PERMX = ln(mean_k) + LOGPERM_STD * z`` with ``z`` a unit Gaussian random
-    field (white noise smoothed over ``CORRELATION_CELLS``) conditioned to 0 at the wells (the
-    wells are "logged" at the layer mean, so every seed gives workable wells); porosity has
+    field (white noise smoothed over ``layout.correlation_cells``) conditioned to 0 at the wells
+    (the wells are "logged" at the layer mean, so every seed gives workable wells); porosity has
     layer mean ``PORO_MEAN_REF + PORO_PER_LOGPERM * ln(mean_k / 45 mD)`` and correlation
     ``PORO_LOGPERM_CORR`` with ``z``; PERMZ/PERMX is log-normal around ``KV_KH_GEOMEAN``.
     """
-    logk = np.empty((NZ, NY, NX))
-    poro = np.empty((NZ, NY, NX))
-    kvkh = np.empty((NZ, NY, NX))
+    shape = (NZ, layout.ny, layout.nx)
+    logk = np.empty(shape)
+    poro = np.empty(shape)
+    kvkh = np.empty(shape)
     c = PORO_LOGPERM_CORR
     for k in range(NZ):
-        z = _condition_to_wells(_gaussian_random_field(rng, CORRELATION_CELLS),
-                                CORRELATION_CELLS)
-        zp = c * z + np.sqrt(1.0 - c * c) * _gaussian_random_field(rng, 1.5)
+        z = _condition_to_wells(_gaussian_random_field(rng, layout.correlation_cells, layout),
+                                layout.correlation_cells, layout)
+        zp = c * z + np.sqrt(1.0 - c * c) * _gaussian_random_field(rng, layout.poro_cells,
+                                                                   layout)
         logk[k] = np.log(LAYER_PERM_GEOMEAN_MD[k]) + LOGPERM_STD * z
         poro[k] = (PORO_MEAN_REF + PORO_PER_LOGPERM * np.log(LAYER_PERM_GEOMEAN_MD[k] / 45.0)
                    + PORO_STD * zp)
-        kvkh[k] = KV_KH_GEOMEAN * np.exp(0.3 * _gaussian_random_field(rng, 2.0))
+        kvkh[k] = KV_KH_GEOMEAN * np.exp(0.3 * _gaussian_random_field(rng, layout.kvkh_cells,
+                                                                      layout))
     permx = np.exp(logk)
-    return SyntheticFields(tops=structure_tops(), poro=np.clip(poro, 0.05, 0.35), permx=permx,
+    return SyntheticFields(tops=structure_tops(layout), poro=np.clip(poro, 0.05, 0.35), permx=permx,
                            permz=permx * kvkh)
 
 
@@ -203,15 +256,15 @@ def _first_of_month(d: _dt.date, months_later: int) -> _dt.date:
     return _dt.date(d.year + m // 12, m % 12 + 1, 1)
 
 
-def report_steps() -> list[ReportStep]:
+def report_steps(layout: Layout = DEFAULT_LAYOUT) -> list[ReportStep]:
     """Report steps: the 1st of every month, plus the end of each yearly shut-in.
 
     All wells are shut from the 1st of ``SHUTIN_MONTH`` for ``SHUTIN_DAYS`` days every year, so
     the step ending then has no producing well and its BHP is the built-up pressure.
     """
-    all_wells = frozenset(w.name for w in WELLS)
+    all_wells = frozenset(w.name for w in layout.wells)
     steps: list[ReportStep] = []
-    for m in range(12 * N_YEARS):
+    for m in range(12 * layout.n_years):
         month_start = _first_of_month(START_DATE, m)
         if month_start.month == SHUTIN_MONTH:
             shut_end = month_start + _dt.timedelta(days=SHUTIN_DAYS)
@@ -221,9 +274,9 @@ def report_steps() -> list[ReportStep]:
     return steps
 
 
-def default_history_end_days() -> float:
+def default_history_end_days(layout: Layout = DEFAULT_LAYOUT) -> float:
     """The report day nearest ``HISTORY_FRACTION`` of the schedule, days since START."""
-    days = np.array([s.days for s in report_steps()])
+    days = np.array([s.days for s in report_steps(layout)])
     return float(days[np.argmin(np.abs(days - HISTORY_FRACTION * days[-1]))])
 
 
@@ -315,26 +368,27 @@ DENSITY
 """
 
 
-def _schedule_section() -> str:
+def _schedule_section(layout: Layout) -> str:
     out = ["SCHEDULE", "", "RPTONLY", "", "WELSPECS",
            "-- well group I J BHP-depth phase"]
-    out += [f" '{w.name}' 'G1' {w.i} {w.j} 1* 'OIL' /" for w in WELLS]
+    out += [f" '{w.name}' 'G1' {w.i} {w.j} 1* 'OIL' /" for w in layout.wells]
     out += ["/", "", "COMPDAT",
             "-- well I J K1 K2 status satnum CF diam(m) Kh skin Dfac dir"]
-    for w in WELLS:
+    for w in layout.wells:
         for k in w.layers:
             out.append(f" '{w.name}' {w.i} {w.j} {k} {k} 'OPEN' 1* 1* {WELL_DIAMETER_M:.2f} 1* "
                        f"{BASE_SKIN:.1f} 1* 'Z' /")
     out += ["/", "", "WCONPROD", "-- well status control ORAT WRAT GRAT LRAT RESV BHP"]
     out += [f" '{w.name}' 'OPEN' 'ORAT' {w.orat_sm3_day:.1f} 4* {BHP_LIMIT_BAR:.1f} /"
-            for w in WELLS]
+            for w in layout.wells]
     out += ["/", ""]
-    is_open = frozenset(w.name for w in WELLS)
-    for step in report_steps():
+    is_open = frozenset(w.name for w in layout.wells)
+    for step in report_steps(layout):
         if step.open_wells != is_open:  # controls for a step precede the DATES that ends it
             out.append("WELTARG")
             out += [f" '{w.name}' 'ORAT' "
-                    f"{w.orat_sm3_day if w.name in step.open_wells else 0.0:.1f} /" for w in WELLS]
+                    f"{w.orat_sm3_day if w.name in step.open_wells else 0.0:.1f} /"
+                    for w in layout.wells]
             out += ["/", ""]
             is_open = step.open_wells
         out += ["DATES", f" {_eclipse_date(step.date)} /", "/", ""]
@@ -342,7 +396,7 @@ def _schedule_section() -> str:
     return "\n".join(out)
 
 
-def render_deck(fields: SyntheticFields, seed: int) -> str:
+def render_deck(fields: SyntheticFields, seed: int, layout: Layout = DEFAULT_LAYOUT) -> str:
     """The base deck text: prior ``fields`` and base skin ``BASE_SKIN`` on every connection.
 
     Section and data keywords start at column 0 on their own line; every COMPDAT connection is
@@ -352,18 +406,21 @@ def render_deck(fields: SyntheticFields, seed: int) -> str:
     inline (no INCLUDE files); the GRID section ends with ``COPY PERMX PERMY`` and AQUANCON, so
     a MULTIPLY block inserted before PROPS scales PERMX and PERMY independently.
     """
-    n = NX * NY * NZ
-    wells = " ".join(f"'{w.name}'" for w in WELLS)
-    dz = " ".join(f"{NX * NY}*{dz:.2f}" for dz in LAYER_DZ_M)
+    nx, ny, wells_ = layout.nx, layout.ny, layout.wells
+    n = nx * ny * NZ
+    wells = " ".join(f"'{w.name}'" for w in wells_)
+    dz = " ".join(f"{nx * ny}*{dz:.2f}" for dz in LAYER_DZ_M)
+    size = "" if layout == DEFAULT_LAYOUT else \
+        f" ({layout.name} layout: {nx} x {ny} x {NZ} cells, {layout.n_years} years)"
     summary = ["SUMMARY", ""]
     for kw in ("FOPT", "FWPT", "FGPT", "FPR", "FOPR", "FWPR", "FGPR"):
         summary += [kw, ""]
     for kw in ("WBHP", "WOPR", "WWPR", "WGPR", "WGOR", "WWCT"):
         summary += [kw, f" {wells} /", ""]
     return (
-        f"""-- hmflow synthetic case {GENERATOR_VERSION}, seed {seed}: written by hmcore.scenarios.synthetic
+        f"""-- hmflow synthetic case {GENERATOR_VERSION}, seed {seed}{size}: written by hmcore.scenarios.synthetic
 -- 3-phase black oil (METRIC), anticline with a gas cap, Fetkovich aquifer on the flanks,
--- {len(WELLS)} oil-rate-controlled producers, monthly report steps, yearly 2-week shut-ins.
+-- {len(wells_)} oil-rate-controlled producers, monthly report steps, yearly 2-week shut-ins.
 
 RUNSPEC
 
@@ -371,7 +428,7 @@ TITLE
 hmflow synthetic case seed {seed}
 
 DIMENS
- {NX} {NY} {NZ} /
+ {nx} {ny} {NZ} /
 
 OIL
 
@@ -395,21 +452,21 @@ TABDIMS
 
 WELLDIMS
 -- wells connections/well groups wells/group
- {len(WELLS)} {NZ} 1 {len(WELLS)} /
+ {len(wells_)} {NZ} 1 {len(wells_)} /
 
 AQUDIMS
 -- 4* analytic-aquifers connections/aquifer
- 4* 1 {2 * NX * NZ} /
+ 4* 1 {2 * nx * NZ} /
 
 UNIFOUT
 
 GRID
 
 DX
- {n}*{DX_M:.1f} /
+ {n}*{layout.dx_m:.1f} /
 
 DY
- {n}*{DX_M:.1f} /
+ {n}*{layout.dx_m:.1f} /
 
 DZ
  {dz} /
@@ -428,8 +485,8 @@ COPY
 
 AQUANCON
 -- aquifer I1 I2 J1 J2 K1 K2 face
- 1 1 {NX} 1 1 1 {NZ} 'J-' /
- 1 1 {NX} {NY} {NY} 1 {NZ} 'J+' /
+ 1 1 {nx} 1 1 1 {NZ} 'J-' /
+ 1 1 {nx} {ny} {ny} 1 {NZ} 'J+' /
 /
 
 PROPS
@@ -455,4 +512,4 @@ AQUFETP
  1 {WOC_M:.1f} 1* {AQUIFER_VOLUME_SM3:.4E} {AQUIFER_CT_PER_BAR:.2E} {AQUIFER_PI:.1f} 1 /
 /
 
-""" + "\n".join(summary) + "\n" + _schedule_section())
+""" + "\n".join(summary) + "\n" + _schedule_section(layout))

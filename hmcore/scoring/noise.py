@@ -5,15 +5,20 @@
   generators draw their noise from it (:mod:`hmcore.scenarios.synthetic`,
   :mod:`hmcore.scenarios.hidden`); the estimator uses it as its default where a record allows
   no estimate.
-* :func:`estimate_noise` - a robust noise level and AR(1) correlation from series without
-  stated sigma (variogram of first differences), used by
-  :class:`hmcore.scoring.observations.ObservationSet`.
+* :func:`fit_noise` - noise levels and one AR(1) correlation from series without stated sigma,
+  by restricted likelihood of contrasts free of a local line within each run of continuous
+  signal (:class:`NoiseSeries`); :func:`censored_sigma` for a series clipped at 0;
+  :func:`variogram_rho` the correlation of series whose sigma the data give. Used by
+  :mod:`hmcore.scoring.noise_fill` for :class:`hmcore.scoring.observations.ObservationSet`.
+* The floors and thresholds the estimate keeps to (:data:`SIGMA_FLOOR`,
+  :data:`FLOOR_SIGNAL_SHARE`, ...).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from statistics import NormalDist
 
 import numpy as np
 
@@ -103,8 +108,20 @@ RESPONSE_OF = {"WBHP": "bhp", "WOPR": "oil", "WWPR": "water", "WGPR": "gas", "WG
                "WWCT": "wct"}
 
 
-SIGMA_FLOOR = {"WBHP": 0.3, "WWCT": 0.01, "WGOR_REL": 0.03, "RATE_REL": 0.02}
-"""Smallest noise level an estimate may give: bar, fraction, relative GOR, relative rate."""
+SIGMA_FLOOR = {"WBHP": 0.3, "WWCT": 0.01, "WGOR_REL": 0.01, "RATE_REL": 0.01}
+"""Smallest noise level an estimate may give: bar, fraction, relative GOR, relative rate (a
+gauge's resolution: data rounded to a few digits would otherwise give a level near 0)."""
+
+
+FLOOR_SIGNAL_SHARE = 0.01
+"""A floor never sits above the signal it would hide: an absolute floor is at most this share
+of a segment's typical value (a water cut of 3e-5 gets 3e-7, not 0.01). A series whose every
+fitted value is within its quantity's floor of zero is also marked uninformative."""
+
+
+RATE_STEP = 0.10
+"""An observed oil rate that changes by more than this share between two rows starts a new run
+of continuous signal (the BHP, GOR and water cut may step there)."""
 
 
 AFTER_BREAKTHROUGH_DEFAULT = {"WWCT": PUNQ_NOISE.wct_after, "WGOR": PUNQ_NOISE.gor_after}
@@ -145,6 +162,56 @@ MAX_RHO = 0.9
 
 
 # ============================================================================ noise estimation
+RHO_GRID = tuple(round(0.05 * k, 2) for k in range(round(MAX_RHO / 0.05) + 1))
+"""AR(1) correlations the profile likelihood of :func:`fit_noise` compares."""
+
+
+CHUNK_ROWS = 6
+"""Longest stretch of a run the local linear trend of :func:`fit_noise` spans (rows): long
+enough to separate a trend from noise, short enough that a curved transient (a build-up, a
+decline after reopening) is close to a line over it."""
+
+
+MIN_CHUNK_ROWS = 3
+"""A line through fewer rows leaves no contrast free of the trend."""
+
+
+MIN_CONTRASTS = 3
+"""Fewest trend-free contrasts from which one series' noise level is estimated; with fewer,
+the series takes the level pooled over its group (the same segment in the other wells)."""
+
+
+RHO_SUPPORT = 1.92
+"""Correlations whose restricted log-likelihood is within this of the best one are supported by
+the data (1.92: a 95 % likelihood-ratio interval)."""
+
+
+RHO_WIDE = 0.5
+"""A supported range of correlations wider than this means the data do not tell the correlation
+(short runs between shut-ins): the noise report says so, and the levels assume the mean."""
+
+
+RELATIVE_MARGIN = 2.0
+"""A water cut's noise is read as relative to its value when that model's log-likelihood beats
+the absolute one's by more than this (a factor e^2 in likelihood)."""
+
+
+UNCERTAIN_FACTOR = 1.5
+"""A level whose range (sampling and the correlations the data support) reaches beyond this
+factor of it is reported uncertain."""
+
+
+SHRINK_CONTRASTS = 8
+"""A well's own level counts as many contrasts as it has, the level of its kind pooled over all
+wells as this many: a well with a few contrasts (a level from 4 is uncertain by a factor of
+about 1.5) leans on the others, one with many keeps its own."""
+
+
+CLIP = 3.5
+"""Contrasts beyond this many robust standard deviations are clipped (a step the runs did not
+catch, a breakthrough, a heavy-tailed gauge); the mean square is corrected for the clipping."""
+
+
 def _winsorized_var(d: np.ndarray, clip: float = 4.0) -> float:
     """Variance of ``d`` about its median with values beyond ``clip`` robust SDs clipped."""
     if d.size < 2:
@@ -171,34 +238,268 @@ def robust_variogram(x: np.ndarray, max_lag: int) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class NoiseSeries:
+    """One well's rows of one noise segment, in the space the noise is additive in (the value,
+    or its logarithm for a noise relative to the value).
+
+    ``days`` is the time the signal's trend is linear in (default: the row number);
+    ``position`` the row number along the well's whole series of the quantity, the lag unit
+    of the AR(1) noise (default 0, 1, ...); ``run`` labels stretches of rows over which the
+    signal is continuous: a shut-in, a rate change or a breakthrough between two rows starts
+    a new run (default: one run)."""
+
+    values: np.ndarray
+    days: np.ndarray | None = None
+    position: np.ndarray | None = None
+    run: np.ndarray | None = None
+
+    def chunks(self) -> list[np.ndarray]:
+        """Row indices of the stretches a local line is fitted to: each run without its first
+        row (right after a change, the steepest part of a transient: a reopening's drawdown,
+        a build-up's first day), cut into pieces of at most :data:`CHUNK_ROWS` rows (none
+        shorter than :data:`MIN_CHUNK_ROWS`)."""
+        n = len(self.values)
+        run = np.zeros(n, int) if self.run is None else np.asarray(self.run)
+        out = []
+        starts = np.flatnonzero(np.r_[True, run[1:] != run[:-1]])
+        for a, b in zip(starts, np.r_[starts[1:], n]):
+            idx = np.arange(a + 1, b)
+            idx = idx[np.isfinite(np.asarray(self.values, float)[idx])]
+            if idx.size >= MIN_CHUNK_ROWS:
+                out += np.array_split(idx, math.ceil(idx.size / CHUNK_ROWS))
+        return out
+
+
+def _contrasts(y: np.ndarray, t: np.ndarray, p: np.ndarray, rho: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Trend-free, uncorrelated contrasts of a stack of chunks of one length and their REML
+    log-determinant terms.
+
+    Each row of ``y`` (chunks x rows) is ``a + b t + sigma e`` with ``e`` AR(1) (correlation
+    ``rho ** |p_i - p_j|``): the whitened values ``L^-1 y`` (``C = L L'``) projected off the
+    whitened trend basis are ``rows - 2`` independent N(0, sigma^2) contrasts per chunk. The
+    term ``log|L| + log|R|`` (R from the QR of the whitened basis) is the part of the
+    restricted likelihood that depends on ``rho`` besides the contrasts."""
+    k, n = y.shape
+    lag = np.abs(p[:, :, None] - p[:, None, :])
+    cov = rho ** lag if rho > 0 else np.broadcast_to(np.eye(n), (k, n, n))
+    chol = np.linalg.cholesky(cov)
+    tc = t - t.mean(axis=1, keepdims=True)
+    basis = np.stack([np.ones((k, n)), tc / np.ptp(t, axis=1, keepdims=True)], axis=2)
+    white = np.linalg.solve(chol, np.concatenate([basis, y[:, :, None]], axis=2))
+    q, r = np.linalg.qr(white[:, :, :2], mode="complete")
+    u = np.einsum("kij,ki->kj", q[:, :, 2:], white[:, :, 2])
+    diag_l = np.log(np.diagonal(chol, axis1=1, axis2=2)).sum(axis=1)
+    diag_r = np.log(np.abs(np.diagonal(r, axis1=1, axis2=2)[:, :2])).sum(axis=1)
+    return u, diag_l + diag_r
+
+
+def level_interval(n: int, z: float = 1.96) -> tuple[float, float]:
+    """Factors on a noise level estimated from ``n`` independent contrasts giving its
+    two-sided interval (95 % for z = 1.96): ``sqrt(n / chi2_n quantile)``, with the
+    Wilson-Hilferty approximation of the chi-square quantiles."""
+    if n <= 0:
+        return 0.0, math.inf
+    a = 2.0 / (9.0 * n)
+
+    def chi2(zz: float) -> float:
+        return n * max(1.0 - a + zz * math.sqrt(a), 1e-6) ** 3
+
+    return math.sqrt(n / chi2(z)), math.sqrt(n / chi2(-z))
+
+
+def _clip_factor(c: float) -> float:
+    """E[min(z^2, c^2)] for a standard normal z: the mean square a clip at c keeps."""
+    nd = NormalDist()
+    return (2 * nd.cdf(c) - 1) - 2 * c * nd.pdf(c) + 2 * c * c * (1 - nd.cdf(c))
+
+
+def robust_mean_square(u: np.ndarray, clip: float = CLIP) -> float:
+    """Mean square of zero-mean contrasts with values beyond ``clip`` robust standard
+    deviations clipped, corrected to be unbiased for Gaussian contrasts (NaN when empty)."""
+    u = np.asarray(u, float)
+    if u.size == 0:
+        return float("nan")
+    if u.size < 5:
+        return float(np.mean(u * u))
+    s = 1.4826 * float(np.median(np.abs(u)))
+    if s <= 0:
+        return float(np.mean(u * u))
+    return float(np.mean(np.minimum(u * u, (clip * s) ** 2))) / _clip_factor(clip)
+
+
+@dataclass(frozen=True)
+class NoiseFit:
+    """The noise of a set of series: a level per series (NaN: too few contrasts), the shared
+    AR(1) correlation and each series' contrasts at that correlation (for pooling)."""
+
+    sigma: tuple[float, ...]
+    rho: float
+    contrasts: tuple[np.ndarray, ...]
+    rho_range: tuple[float, float] | None = None
+    """The correlations the data support (restricted likelihood within
+    :data:`RHO_SUPPORT` of its best); None when rho was given."""
+
+    @property
+    def rho_identified(self) -> bool:
+        """Whether the data tell the correlation (its supported range is narrow): otherwise
+        the levels depend on the correlation assumed."""
+        return self.rho_range is None or self.rho_range[1] - self.rho_range[0] <= RHO_WIDE
+
+    def pooled(self, members) -> float:
+        """One level from the contrasts of the series ``members`` together (NaN: none)."""
+        u = [self.contrasts[i] for i in members]
+        u = np.concatenate(u) if u else np.zeros(0)
+        return math.sqrt(robust_mean_square(u)) if u.size >= MIN_CONTRASTS else float("nan")
+
+
+class _Chunks:
+    """Every chunk of a set of series, stacked by length for batched linear algebra."""
+
+    def __init__(self, series: list[NoiseSeries]):
+        self.n_series = len(series)
+        by_len: dict[int, list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]] = {}
+        for i, s in enumerate(series):
+            y = np.asarray(s.values, float)
+            t = np.arange(y.size, dtype=float) if s.days is None else np.asarray(s.days, float)
+            p = np.arange(y.size, dtype=float) if s.position is None else \
+                np.asarray(s.position, float)
+            for c in s.chunks():
+                if np.ptp(t[c]) > 0:
+                    by_len.setdefault(c.size, []).append((i, y[c], t[c], p[c]))
+        self.stacks = [(np.array([a[0] for a in v]), np.array([a[1] for a in v]),
+                        np.array([a[2] for a in v]), np.array([a[3] for a in v]))
+                       for v in by_len.values()]
+
+    def at(self, rho: float) -> tuple[list[np.ndarray], float]:
+        """Each series' contrasts at ``rho`` and the sum of the log-determinant terms."""
+        parts: list[list[np.ndarray]] = [[] for _ in range(self.n_series)]
+        total = 0.0
+        for owner, y, t, p in self.stacks:
+            u, term = _contrasts(y, t, p, rho)
+            total += float(term.sum())
+            for i, row in zip(owner, u):
+                parts[i].append(row)
+        return [np.concatenate(x) if x else np.zeros(0) for x in parts], total
+
+
+def fit_noise(series: list[NoiseSeries], rho: float | None = None,
+              groups: list | None = None) -> NoiseFit:
+    """Noise level of each series and one shared AR(1) correlation, by restricted likelihood.
+
+    Model: within each chunk of a run (see :meth:`NoiseSeries.chunks`) the value is a line in
+    ``days`` plus ``sigma_s`` times AR(1) noise of correlation ``rho`` along the rows. The
+    lines are nuisance: only contrasts free of them are used (REML), so a trend, a rate step
+    or a shut-in between runs never counts as noise. ``rho`` (unless given) is the mean of
+    :data:`RHO_GRID` weighted by the restricted likelihood (a posterior mean under a flat
+    prior: short runs often tell a correlation from a trend only weakly, and the mean does
+    not jump to an end of the range on a flat likelihood), with one level per group of series
+    (``groups``: a label per series, default one group per series) and, inside a group,
+    each series' contrasts scaled by its own level at ``rho = 0``; a group pools the few
+    contrasts of short series, which alone would let the level absorb the correlation. Each
+    level is the robust mean square of its contrasts (:func:`robust_mean_square`) at the
+    chosen ``rho``; a series with fewer than :data:`MIN_CONTRASTS` contrasts gets NaN (see
+    :meth:`NoiseFit.pooled`).
+    """
+    chunks = _Chunks(series)
+    labels = list(range(len(series))) if groups is None else list(groups)
+    if rho is not None:
+        per, _ = chunks.at(float(rho))
+        return NoiseFit(_levels(per), float(rho), tuple(per))
+    scale = None
+    objective, fits = [], []
+    for r in RHO_GRID:
+        per, term = chunks.at(r)
+        if scale is None:
+            scale = _scales(per, labels)
+        total = term
+        pooled: dict = {}
+        for u, g, sc in zip(per, labels, scale):
+            if u.size and sc > 0:
+                pooled.setdefault(g, []).append(u / sc)
+        for g, parts in pooled.items():
+            u = np.concatenate(parts)
+            v = robust_mean_square(u) if u.size >= MIN_CONTRASTS else float("nan")
+            if v > 0:
+                total += 0.5 * u.size * math.log(v)
+        objective.append(total)
+        fits.append(per)
+    obj = np.array(objective) - min(objective)
+    weight = np.exp(-obj)
+    mean = float(np.sum(weight * np.array(RHO_GRID)) / np.sum(weight))
+    k = int(np.argmin(np.abs(np.array(RHO_GRID) - mean)))
+    inside = [r for r, o in zip(RHO_GRID, obj) if o <= RHO_SUPPORT]
+    return NoiseFit(_levels(fits[k]), RHO_GRID[k], tuple(fits[k]), (min(inside), max(inside)))
+
+
+def _levels(per: list[np.ndarray]) -> tuple[float, ...]:
+    return tuple(math.sqrt(robust_mean_square(u)) if u.size >= MIN_CONTRASTS else float("nan")
+                 for u in per)
+
+
+def _scales(per: list[np.ndarray], labels: list) -> list[float]:
+    """Each series' own level at rho = 0 (its group's, when it has too few contrasts)."""
+    group: dict = {}
+    for u, g in zip(per, labels):
+        group.setdefault(g, []).append(u)
+    pooled = {g: math.sqrt(robust_mean_square(np.concatenate(v))) if sum(x.size for x in v)
+              else 0.0 for g, v in group.items()}
+    return [math.sqrt(robust_mean_square(u)) if u.size >= MIN_CONTRASTS else pooled[g]
+            for u, g in zip(per, labels)]
+
+
+def variogram_rho(series: list[np.ndarray]) -> float:
+    """Lag-1 correlation shared by series of standardized values (the data's own sigma known),
+    from robust variograms: the noise part of the variogram is ``(1 - rho^h)``, so
+    ``gamma(2) / gamma(1) = 1 + rho``, pooled over the series (each weighted by its length, on
+    its own scale); series shorter than 5 do not count. Only lags 1 and 2 are used: a smooth
+    misfit left in a series adds ``c h^2`` and biases the estimate less the shorter the lags."""
+    num = den = 0.0
+    for s in series:
+        g = robust_variogram(s, 2) if len(s) >= 5 else np.full(2, np.nan)
+        if np.isfinite(g).all() and g.sum() > 0:
+            num += len(s) * g[1] / g.sum()
+            den += len(s) * g[0] / g.sum()
+    rho = num / den - 1.0 if den > 0 else 0.0
+    return float(min(max(rho, 0.0), MAX_RHO))
+
+
 def estimate_noise(series: list[np.ndarray], rho: float | None = None
                    ) -> tuple[list[float], float]:
-    """Noise level of each series and one shared lag-1 correlation, from robust variograms.
+    """Noise level of each series (one run each, rows equally spaced) and one shared AR(1)
+    correlation: :func:`fit_noise` on plain arrays. NaN for a series too short to estimate."""
+    fit = fit_noise([NoiseSeries(np.asarray(s, float)) for s in series], rho)
+    return list(fit.sigma), fit.rho
 
-    Model: observation = smooth signal + sigma_s * AR(1) noise with correlation ``rho``, so the
-    noise part of the variogram is ``sigma_s^2 (1 - rho^h)`` and ``gamma(2) / gamma(1) =
-    1 + rho``. ``rho`` (unless given) is that ratio pooled over the series (each weighted by
-    its length, on its own scale); ``sigma_s^2 = (gamma(1) + gamma(2)) / ((1 - rho) +
-    (1 - rho^2))``. Only lags 1 and 2 are used: a smooth misfit left in a series adds
-    ``c h^2`` to the variogram and biases the estimate less the shorter the lags. Series
-    shorter than 5 get NaN (no estimate).
-    """
-    grams = [robust_variogram(s, 2) if len(s) >= 5 else np.full(2, np.nan) for s in series]
-    if rho is None:
-        num = den = 0.0
-        for s, g in zip(series, grams):
-            if np.isfinite(g).all() and g.sum() > 0:
-                num += len(s) * g[1] / g.sum()
-                den += len(s) * g[0] / g.sum()
-        rho = num / den - 1.0 if den > 0 else 0.0
-    rho = float(min(max(rho, 0.0), MAX_RHO))
-    sig = []
-    for g in grams:
-        if np.isfinite(g).all():
-            sig.append(math.sqrt(max(g.sum() / ((1.0 - rho) + (1.0 - rho * rho)), 0.0)))
-        else:
-            sig.append(float("nan"))
-    return sig, rho
+
+def censored_sigma(values: np.ndarray, bound: float = 0.0) -> float:
+    """Noise level of a series clipped at ``bound`` (the water cut of a dry well, its noise
+    clipped at 0) about a level that does not move: the maximum-likelihood sigma of a normal
+    law censored at ``bound`` (a Tobit model), profiled over ``mu / sigma`` on a grid. NaN
+    when fewer than 3 values are above the bound."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)] - bound
+    x = v[v > 1e-12]
+    n0, n1 = int(v.size - x.size), int(x.size)
+    if n1 < 3:
+        return float("nan")
+    nd = NormalDist()
+    sx, sxx = float(x.sum()), float((x * x).sum())
+    best = (-math.inf, float("nan"))
+    for k in np.linspace(-3.0, 3.0, 241):
+        s = (k * sx + math.sqrt(k * k * sx * sx + 4.0 * sxx * n1)) / (2.0 * sxx)  # 1 / sigma
+        loglik = n1 * math.log(s) - 0.5 * (s * s * sxx - 2 * k * s * sx + k * k * n1)
+        if n0:
+            loglik += n0 * math.log(max(nd.cdf(-k), 1e-300))
+        if loglik > best[0]:
+            best = (loglik, 1.0 / s)
+    return float(best[1])
+
+
+CENSORED_SHARE = 0.15
+"""A segment with at least this share of its values exactly at 0 is read as noise clipped
+there (:func:`censored_sigma`)."""
 
 
 def breakthrough_index(values: np.ndarray, threshold: float, persist: int = 2) -> int | None:

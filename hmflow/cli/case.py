@@ -11,6 +11,7 @@ from typing import Optional
 import typer
 
 from hmcore.errors import CaseError
+from hmcore.scoring.noise_table import case_noise_text
 from hmcore.simulation import simulator as simulators
 from hmcore.units import deck_unit
 from hmflow.cli.common import (
@@ -66,6 +67,7 @@ def init(deck: Path = typer.Option(..., "--deck", help="The field's deck (.DATA)
                   f"injector(s); faults: {len(start.info.faults)}")
     for why in start.skipped:
         console.print(f"  [yellow]not used[/]: {why}", highlight=False)
+    console.print(case_noise_text(load_case(str(case_path))), highlight=False, markup=False)
     console.print(f"next: hmflow check --case {case_path}")
 
 
@@ -99,6 +101,7 @@ def check(case: str = typer.Option("synthetic", "--case", help=CASE_HELP)) -> No
                       "used: " + "; ".join(c.info.history.skipped[:5]))
     for p in c.space.parameters:
         console.print(f"  parameter {p.name:<12} {p.kind:<9} [{p.low:g}, {p.high:g}] {p.description}")
+    console.print(case_noise_text(c), highlight=False, markup=False)
 
 
 @app.command()
