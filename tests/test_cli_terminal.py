@@ -50,9 +50,11 @@ def restore_env(monkeypatch):
 
 # ------------------------------------------------------------------ real OPM, real Prefect
 @pytest.mark.opm
-def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_path):
-    common = ("run", "--agent", "random", "--seed", "3", "--workers", "1", "--storage",
-              str(tmp_path / "store"))
+def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_path, small_case):
+    """What the terminal shows of `hmflow run` with its own temporary Prefect server (the
+    small synthetic case, conftest.small_case: the printing is tested, not the case)."""
+    common = ("run", "--case", str(small_case), "--agent", "random", "--seed", "3",
+              "--workers", "1", "--storage", str(tmp_path / "store"))
     quiet = hmflow(*common, "--budget", "2", cwd=tmp_path, env=clean_env())
     text = quiet.stdout + quiet.stderr
     assert quiet.returncode == 0, text
@@ -82,7 +84,7 @@ def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_pat
     assert loud.returncode == 0, text
     assert INFO_LINE.search(text) and "Beginning flow run" in text, text
     assert "Traceback" not in text and not any(t in text for t in TELEMETRY), text
-    assert "resuming campaign synthetic-random-seed3: 2 calls already journaled" in loud.stdout
+    assert "resuming campaign synthetic-small-random-seed3: 2 calls already journaled" in loud.stdout
     bar = [line for line in loud.stdout.splitlines() if line.startswith("calls ")]
     assert bar and all(not INFO_LINE.search(line) for line in bar), bar
     assert "3/3" in bar[-1] and re.search(r"\(call [1-3] of 3\)", loud.stdout)

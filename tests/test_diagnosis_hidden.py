@@ -321,12 +321,14 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
     assert wrong.exit_code == 1 and "NOT FOUND" in wrong.output
 
 
-def test_effect_signal_is_zero_for_a_neutral_effect_and_names_an_invisible_one(tmp_path):
+def test_effect_signal_is_zero_for_a_neutral_effect_and_names_an_invisible_one(tmp_path,
+                                                                              small_case):
     """The signal of a hidden effect (truth with vs without it, whitened, real OPM runs): zero
     when the effect sits at its neutral value (the run without it reproduces the truth run);
-    a different skin everywhere shows, but the global skin absorbs all of it; and on PUNQ-S3
-    a fault that acts only after the fitted history is reported as hardly visible there, with
-    `hmflow hide` saying so."""
+    a different skin everywhere shows, but the global skin absorbs all of it (both on the
+    small synthetic case's deck, conftest.small_case, with the built-in case's true globals);
+    and on PUNQ-S3 a fault that acts only after the fitted history is reported as hardly
+    visible there, with `hmflow hide` saying so."""
     _opm()
     from typer.testing import CliRunner
 
@@ -335,7 +337,9 @@ def test_effect_signal_is_zero_for_a_neutral_effect_and_names_an_invisible_one(t
     from hmflow.cli import app
 
     runner = CliRunner()
-    out = runner.invoke(app, ["hide", "--out", str(tmp_path / "neutral"), "--seed", "3",
+    truth = [arg for name, value in SYNTHETIC_TRUTH.items() for arg in ("--set", f"{name}={value}")]
+    out = runner.invoke(app, ["hide", "--out", str(tmp_path / "neutral"), "--deck",
+                              str(small_case.parent / "SYNTH.DATA"), *truth, "--seed", "3",
                               "--candidate", "well_skin:PROD2", "--value", "3"])
     assert out.exit_code == 0, out.output
     doc = json.loads((tmp_path / "neutral" / "hidden_effect.json").read_text())

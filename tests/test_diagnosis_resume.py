@@ -1,6 +1,7 @@
 """`hmflow diagnose` killed with SIGKILL mid-run and started again with the same command
 replays the runs it had journaled and simulates only the others (real OPM Flow, real Prefect,
-the CLI as a user types it)."""
+the CLI as a user types it; the small synthetic case, conftest.small_case, and the session's
+Prefect server: what is tested is the journal, not the case or the server)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from conftest import cli_env
 
 BUDGET = 8
 """The minimum of one family searched from a given calibrated point: 1 run of it, then one
@@ -44,13 +46,15 @@ def test_a_journaled_run_is_replayed_and_one_of_other_values_refused(tmp_path):
 
 
 @pytest.mark.opm
-def test_a_killed_diagnosis_resumes_without_simulating_a_journaled_run_again(tmp_path):
+def test_a_killed_diagnosis_resumes_without_simulating_a_journaled_run_again(tmp_path,
+                                                                             small_case,
+                                                                             prefect_api):
     from hmcore.cases import load_case
-    from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH, ensure_synthetic_case
+    from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH
     from storage import ArtifactStore
     from tasks.case import prepare_deck
 
-    shutil.copytree(Path(ensure_synthetic_case()).parent, tmp_path / "syn")
+    shutil.copytree(small_case.parent, tmp_path / "syn")
     store = tmp_path / "store"
     case = load_case(tmp_path / "syn" / "case.toml")
     prepare_deck.fn(case, "syn/case.toml", str(store), "b")  # a campaign's best, as archived
@@ -65,8 +69,9 @@ def test_a_killed_diagnosis_resumes_without_simulating_a_journaled_run_again(tmp
                 for p in (store / "b").glob("evaluations-diagnosis-*/*.json") if p.stem.isdigit()}
 
     log = tmp_path / "killed.log"
+    env = cli_env(prefect_api)
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=log.open("w"), stderr=subprocess.STDOUT,
-                            start_new_session=True)
+                            start_new_session=True, env=env)
     deadline = time.time() + 300
     while time.time() < deadline and len(journaled()) < 3 and proc.poll() is None:
         time.sleep(0.2)
@@ -76,7 +81,8 @@ def test_a_killed_diagnosis_resumes_without_simulating_a_journaled_run_again(tmp
     assert 3 <= len(before) < BUDGET, log.read_text()[-3000:]
     made = set(os.listdir(runs))
 
-    again = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    again = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=600,
+                           env=env)
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     after = journaled()
     assert all(after[i] == record for i, record in before.items())  # nothing journaled again

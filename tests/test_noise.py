@@ -300,3 +300,28 @@ absolute = 2.5
     bhp = [line for line in table.splitlines() if line.split()[:1] == ["WBHP"]]
     assert bhp and all("stated" in line and " 2.5 " in f"{line} " for line in bhp), table
     assert any(line.split()[:1] == ["WGOR"] for line in table.splitlines()), table
+
+
+def test_whitening_is_the_ar1_recursion_along_each_series():
+    """e_t = (z_t - rho z_(t-1)) / sqrt(1 - rho^2) within a well's series of one quantity, z_t
+    itself at a series' first row, with a well's stated rho where it has one."""
+    rng = np.random.default_rng(7)
+    data = history(rng, wells=3).drop(columns="true")
+    obs = ObservationSet.from_observed(
+        data, 1600.0, noise={"WBHP": QuantityNoise(wells={"P2": NoiseLevel(
+            correlation_days=60.0)})})
+    z = rng.normal(size=len(obs.rows))
+    for period in ("fit", "heldout"):
+        idx = obs.vector_index(period)
+        rows = obs.rows.iloc[idx]
+        rhos = obs.row_rho(idx)
+        series = rows.series.to_numpy()
+        expected = []
+        for k, i in enumerate(idx):
+            first = k == 0 or series[k] != series[k - 1]
+            rho = rhos[k]
+            expected.append(z[i] if first or rho <= 0 else
+                            (z[i] - rho * z[idx[k - 1]]) / math.sqrt(1 - rho * rho))
+        assert np.array_equal(obs.whiten(z, period), np.array(expected))
+        assert np.array_equal(obs.whiten(z, period), obs.whiten(z, period))  # cached
+    assert len(set(np.round(obs.row_rho(obs.vector_index("fit")), 6))) > 2

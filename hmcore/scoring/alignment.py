@@ -54,17 +54,16 @@ def nearest(observed: pd.DataFrame, simulated: pd.DataFrame, tolerance_days: flo
     nan = np.full(m, np.nan)
     if simulated is None or simulated.empty or m == 0:
         return Nearest(np.zeros(m, bool), nan, nan.copy())
-    sim = (simulated.sort_index()
-           .sort_values(["well", "quantity", "days"], kind="stable")
-           .drop_duplicates(["well", "quantity", "days"], keep="last"))
-    s_key, o_key = _keys(sim), _keys(observed)
-    codes, _ = pd.factorize(np.concatenate([s_key, o_key]))
-    s_code, o_code = codes[: len(s_key)], codes[len(s_key):]
+    sim = simulated.sort_index()
+    s_code, o_code = _codes(sim, observed)
     t = sim["days"].to_numpy(float)
     v = sim["value"].to_numpy(float)
     od = observed["days"].to_numpy(float)
-    order = np.lexsort((t, s_code))
+    # by (well, quantity), time, then row order; of records at the same time the last one
+    order = np.lexsort((np.arange(len(t)), t, s_code))
     t, v, s_code = t[order], v[order], s_code[order]
+    last = np.r_[(s_code[1:] != s_code[:-1]) | (t[1:] != t[:-1]), True]
+    t, v, s_code = t[last], v[last], s_code[last]
     # one sorted axis for every (well, quantity): code * span + days, groups never overlap
     span = 2.0 * (max(np.abs(t).max(), np.abs(od).max()) + tolerance_days) + 1.0
     right = np.searchsorted(s_code * span + t, o_code * span + od)
@@ -104,7 +103,13 @@ def align(observed: pd.DataFrame, simulated: pd.DataFrame, tolerance_days: float
     return Alignment(pairs, len(observed))
 
 
-def _keys(frame: pd.DataFrame) -> np.ndarray:
-    """One label per row for its (well, quantity)."""
-    return (frame["well"].astype(str).to_numpy(object) + "\x00"
-            + frame["quantity"].astype(str).to_numpy(object))
+def _codes(sim: pd.DataFrame, observed: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """One integer per row for its (well, quantity), shared by the two frames; -1 for an
+    observed row whose well or quantity is never simulated."""
+    w_sim, wells = pd.factorize(sim["well"].astype(str))
+    q_sim, quantities = pd.factorize(sim["quantity"].astype(str))
+    w_obs = pd.Index(wells).get_indexer(observed["well"].astype(str))
+    q_obs = pd.Index(quantities).get_indexer(observed["quantity"].astype(str))
+    n_q = max(len(quantities), 1)
+    o_code = np.where((w_obs >= 0) & (q_obs >= 0), w_obs * n_q + q_obs, -1)
+    return w_sim * n_q + q_sim, o_code

@@ -14,7 +14,6 @@ gives independent unit-variance entries and sums of squares are chi-square numbe
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,6 +49,7 @@ class ObservationSet:
     rho_well: dict[str, dict[str, float]] = field(default_factory=dict)
     segment: tuple[str, ...] = ()
     statement: NoiseSection | None = None
+    _whitening: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     # ---------------------------------------------------------------- construction
     @classmethod
@@ -157,20 +157,24 @@ class ObservationSet:
     def whiten(self, z: np.ndarray, period: str = "fit") -> np.ndarray:
         """AR(1)-prewhitened residual vector of ``period`` from standardized residuals ``z``
         (unmatched rows count as 0: the vector has a fixed length for a given set)."""
-        idx = self.vector_index(period)
+        idx, k, rho, scale = self._whitening_of(period)
         zz = np.nan_to_num(np.asarray(z, float)[idx], nan=0.0)
-        rows = self.rows.iloc[idx]
-        out = np.empty_like(zz)
-        series = rows.series.to_numpy()
-        rhos = self.row_rho(idx)
-        start = np.r_[True, series[1:] != series[:-1]]
-        for k in range(len(zz)):
-            rho = rhos[k]
-            if start[k] or rho <= 0:
-                out[k] = zz[k]
-            else:
-                out[k] = (zz[k] - rho * zz[k - 1]) / math.sqrt(1.0 - rho * rho)
+        out = zz.copy()
+        out[k] = (zz[k] - rho * zz[k - 1]) / scale
         return out
+
+    def _whitening_of(self, period: str) -> tuple[np.ndarray, ...]:
+        """(rows of ``period``'s vector, the positions that follow a row of their own series
+        with rho > 0, their rho, sqrt(1 - rho^2)); computed once per period."""
+        if period not in self._whitening:
+            idx = self.vector_index(period)
+            series = self.rows.series.to_numpy()[idx]
+            rhos = self.row_rho(idx)
+            start = np.r_[True, series[1:] != series[:-1]] if len(idx) else np.zeros(0, bool)
+            k = np.flatnonzero(~start & (rhos > 0))
+            rho = rhos[k]
+            self._whitening[period] = (idx, k, rho, np.sqrt(1.0 - rho * rho))
+        return self._whitening[period]
 
     def residual_vector(self, responses: pd.DataFrame, period: str = "fit") -> np.ndarray:
         return self.whiten(self.standardized(responses), period)
