@@ -17,9 +17,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hmcore", "tasks", "flows", "storage", "hmflow", "deployments")
 LAYERS = (
     ("hmcore.errors", "hmcore.units", "hmcore.ordering", "storage"),
-    ("hmcore.eclipse", "hmcore.simulation"),
+    ("hmcore.eclipse", "hmcore.simulation", "hmcore.fields"),
     ("hmcore.model",),
-    ("hmcore.fields",),
     ("hmcore.scoring",),
     ("hmcore.calibration",),
     ("hmcore.diagnosis",),

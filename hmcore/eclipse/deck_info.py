@@ -173,7 +173,7 @@ _STDOUT_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
-def _quiet_stdout():
+def quiet_stdout():
     """Silence OPM's parser chatter on file descriptor 1 (it prints 'Reading ...').
 
     File descriptor 1 is process-wide: the lock keeps two threads from interleaving the
@@ -206,7 +206,7 @@ def _parse(path: Path):
 
     warnings: list[str] = []
     try:
-        with _quiet_stdout():
+        with quiet_stdout():
             try:
                 deck = Parser().parse(str(path), ParseContext())
             except Exception as strict:  # what OPM Flow itself tolerates is only a warning

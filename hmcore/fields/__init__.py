@@ -1,0 +1,20 @@
+"""Heterogeneous property fields: ensembles of PORO, PERM*, NTG per active cell, their priors
+and the ES-MDA update (Emerick & Reynolds 2013), for history matching such as PUNQ-S3's
+(Floris et al. 2001).
+
+One concept per module, lowest first: :mod:`~hmcore.fields.spec` (a ``kind = "field"``
+parameter and its prior, as the case file states them), :mod:`~hmcore.fields.ensemble` (the
+``[ensemble]`` section), :mod:`~hmcore.fields.fieldset` (checks of a case's fields together,
+the order they are drawn in), :mod:`~hmcore.fields.transform` (update space <-> physical
+values), :mod:`~hmcore.fields.geometry` (cell centres from COORD/ZCORN or DX/DY),
+:mod:`~hmcore.fields.grid` (a deck's grid read with opm.io), :mod:`~hmcore.fields.zones`
+(zones' cells, checks on the grid), :mod:`~hmcore.fields.covariance` (gstools models, exact
+draws), :mod:`~hmcore.fields.prior` (drawn priors), :mod:`~hmcore.fields.grdecl` (a member's
+INCLUDE file, GRDECL read back), :mod:`~hmcore.fields.realisations` (the user's GRDECL priors),
+:mod:`~hmcore.fields.localisation` (distance tapers), :mod:`~hmcore.fields.layout` (fields and
+scalars side by side in the smoother's matrix), :mod:`~hmcore.fields.smoother` (the batched
+ES-MDA update, ask/tell).
+
+Free of Prefect, storage and the simulator; nothing is imported here, so that reading a case
+file (``spec``) does not load opm.io, gstools or the smoother.
+"""
