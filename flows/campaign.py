@@ -14,7 +14,7 @@ from flows.labels import Progress, campaign_run_name, tag_flow_run
 from flows.refuse import USER_ERRORS, input_problems, refused
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
-from hmcore.calibration.calls import Job
+from hmcore.calibration.calls import Job, PhysicsPrecheck
 from hmcore.calibration.loop import calibrate
 from hmcore.calibration.methods import make_proposer
 from hmcore.calibration.registry import (
@@ -203,7 +203,8 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
             progress.update(records)
             return records
 
-        calibrate(proposer, loaded.space, evaluate_batch, budget, workers, done)
+        calibrate(proposer, loaded.space, evaluate_batch, budget, workers, done,
+                  precheck=PhysicsPrecheck.of(loaded))
     results = consolidate(storage, campaign, loaded.space.names)
     best = archive_best(storage, campaign, results)
     collect_curves(storage, campaign, reference)

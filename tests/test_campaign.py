@@ -6,12 +6,19 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
+from conftest import cli_env
+from test_calls_spent import base_of
 
+from hmcore.calibration.calls import POINT_ATOL
+from hmcore.calibration.methods.lm import FD_STEP
+from hmcore.calibration.registry import DEFAULT_AGENT
 from hmcore.scoring.alignment import align
 from hmcore.cases import load_case
 from hmcore.scoring.evaluation import score_responses
@@ -218,3 +225,48 @@ def test_a_call_journaled_before_its_worker_died_is_not_simulated_again(tmp_path
     job = Job(2, {"x": 1.0}, (0.0,), 0, "explore")
     got = simulate.fn(None, job, str(tmp_path), "c", 0, "random")  # no case: nothing may run
     assert got == journal.get(2) and not (tmp_path / "c" / "runs").exists()
+
+
+def test_the_default_campaign_simulates_no_point_twice_and_keeps_its_jacobian_valid(
+        tmp_path, small_case, prefect_api):
+    """`hmflow run` as `make run` types it (the default method, lm; 2 workers; seed 0) on the
+    small synthetic case, 50 calls: no two calls of the journal are of the same point, and no
+    Jacobian run breaks a physics check its base passes (its finite-difference step went the
+    other way). The descents meet the porosity-permeability trend check there: lm version 2
+    sent a Jacobian run across it at call 44 (and 11 more by call 100)."""
+    assert DEFAULT_AGENT == "lm"
+    budget = 50
+    run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
+                          "--budget", str(budget), "--storage", str(tmp_path / "store")],
+                         cwd=tmp_path, env=cli_env(prefect_api, COLUMNS="150"),
+                         capture_output=True, text=True, timeout=1200, check=False)
+    assert run.returncode == 0, run.stdout + run.stderr
+    (campaign,) = [p.name for p in (tmp_path / "store").iterdir()
+                   if p.name.startswith("synthetic-small-lm")
+                   and not p.name.endswith("-reference")]
+    rows = EvaluationJournal(ArtifactStore(tmp_path / "store"), campaign).rows()
+    assert [r["index"] for r in rows] == list(range(budget))
+    space = load_case(small_case).space
+    u = np.array([space.to_action(r["params"]) for r in rows])
+    twice = [(i, j) for i in range(len(u)) for j in range(i)
+             if np.max(np.abs(u[i] - u[j])) <= POINT_ATOL]
+    assert not twice
+    broken = []
+    for r in rows:
+        if r["phase"] != "jacobian":
+            continue
+        base = base_of(r, rows)
+        assert base is not None, f"call {r['index']}: no base one step away"
+        if set(r.get("violation_kinds") or ()) - set(base.get("violation_kinds") or ()):
+            broken.append((r["index"], base["index"], r["violation_kinds"]))
+    assert not broken
+    # the edge was met: some finite-difference step went downwards where upwards stays in
+    # the box (it would have broken a check)
+    turned = []
+    for r in rows:
+        if r["phase"] == "jacobian":
+            step = np.asarray(r["action"]) - np.asarray(base_of(r, rows)["action"])
+            k = int(np.argmax(np.abs(step)))
+            if step[k] < 0 and base_of(r, rows)["action"][k] + FD_STEP <= 1.0:
+                turned.append(r["index"])
+    assert turned, "no finite-difference step turned: the campaign never met a check"

@@ -16,7 +16,7 @@ import pytest
 from conftest import (PUNQ_DECK, PUNQ_DECK_FILES, PUNQ_DIR, copy_punq_deck, requires_opm,
                       requires_punq, sha256_file)
 from hmcore.model.run_deck import Multiply, edits_for, prepare_run_deck, render_deck
-from hmcore.eclipse.deck_info import DeckInfo, _quiet_stdout
+from hmcore.eclipse.deck_info import DeckInfo, quiet_stdout
 from hmcore.errors import CaseError
 from hmcore.model.parameters import Parameter, ParameterSpace
 
@@ -34,7 +34,7 @@ def opm_parse(deck: Path):
     from opm.io.parser import ParseContext, Parser
     from opm.io.schedule import Schedule
 
-    with _quiet_stdout():
+    with quiet_stdout():
         d = Parser().parse(str(deck), ParseContext())
         state = EclipseState(d)
         schedule = Schedule(d, state)

@@ -96,7 +96,10 @@ def _run(proposer, budget=60, workers=2, exploit_last=None):
 def test_calibrate_counts_calls_in_batches_and_ends_on_exploit():
     records, calls = _run(RandomProposer(SPACE.dim, 0), budget=7, workers=3, exploit_last=True)
     assert calls == [3, 3, 1] and [r["index"] for r in records] == list(range(7))
-    assert records[-1]["phase"] == "exploit"
+    # random search's exploit point is one it simulated already: handed its record back
+    # (calls.SimulatedPoints), it spends no call, and the last call is one more explore
+    assert records[-1]["phase"] == "explore"
+    assert len({tuple(np.round(r["action"], 9)) for r in records}) == 7  # no point twice
     # by default the proposer decides: random search's recommendation is a point it has
     # evaluated already (no call wasted on it), SAC's deterministic policy is not
     records, _ = _run(RandomProposer(SPACE.dim, 0), budget=7, workers=3)

@@ -10,7 +10,11 @@ paired with a payload the caller wants kept with the point (its run record, say)
 What every solver here shares, :class:`AskTellLeastSquares`:
 
 * the forward-difference Jacobian (:func:`fd_steps`, :func:`fd_points`, :func:`fd_jacobian`):
-  a step ``h`` per coordinate, taken downwards where ``u + h`` would pass the upper bound;
+  a step ``h`` per coordinate, taken downwards where ``u + h`` would pass the upper bound, or
+  where it would break a check that ``u`` passes and ``u - h`` does not (``breaks``: a
+  function of two points the caller gives, such as the physics checks decided by a point's
+  parameter values); a column the caller finds broken only after its run (a check on the
+  simulated responses) may be asked again the other way (:meth:`AskTellLeastSquares.reverse_fd`);
   a run that failed leaves its column at 0;
 * the bookkeeping of a request: the points asked, each told point kept as a :class:`Point`,
   the evaluations counted, the reason a solver stopped;
@@ -34,6 +38,7 @@ rule its results were made with (a campaign is bound to the calls its method mad
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -85,24 +90,62 @@ class AskTellLeastSquares:
     the evaluations counted, and why the solver stopped."""
 
     def __init__(self, n: int, fd_step: float, lower: np.ndarray | None,
-                 upper: np.ndarray | None):
+                 upper: np.ndarray | None,
+                 breaks: Callable[[np.ndarray, np.ndarray], bool] | None = None):
         self.fd_step = fd_step
         self.lower = np.full(n, -1.0) if lower is None else np.asarray(lower, float)
         self.upper = np.full(n, 1.0) if upper is None else np.asarray(upper, float)
+        self.breaks = breaks
+        """``breaks(v, u)``: whether point ``v`` breaks a check that point ``u`` passes (None:
+        no checks known before a run)."""
         self.n_evaluations = 0
         self.evaluated: list[Point] = []
         self.done = False
         self.reason = ""
         self._pending: list[tuple[str, np.ndarray, Any]] = []
+        self._fd_base: np.ndarray | None = None  # the point of the last finite differences
+
+    def fd_steps(self, u: np.ndarray) -> np.ndarray:
+        """The finite-difference step of each coordinate at ``u``: :func:`fd_steps`, each
+        turned the other way where the step would break a check that ``u`` passes and the
+        other way stays in the box and breaks none (else kept: nothing better is known)."""
+        steps = fd_steps(u, self.fd_step, self.upper)
+        if self.breaks is None:
+            return steps
+        for i, v in enumerate(fd_points(u, steps)):
+            if self.breaks(v, u):
+                w = u.copy()
+                w[i] -= steps[i]
+                if self.lower[i] <= w[i] <= self.upper[i] and not self.breaks(w, u):
+                    steps[i] = -steps[i]
+        return steps
 
     def fd_points(self, u: np.ndarray) -> np.ndarray:
         """The finite-difference points this solver asks at ``u`` (one row per coordinate)."""
-        return fd_points(u, fd_steps(u, self.fd_step, self.upper))
+        return fd_points(u, self.fd_steps(u))
 
     def _fd_requests(self, u: np.ndarray) -> list[tuple[str, np.ndarray, Any]]:
-        steps = fd_steps(u, self.fd_step, self.upper)
+        self._fd_base = u.copy()
+        steps = self.fd_steps(u)
         return [("fd", v, (i, float(h))) for i, (v, h) in enumerate(zip(fd_points(u, steps),
                                                                          steps))]
+
+    def reverse_fd(self, i: int) -> np.ndarray | None:
+        """Turn the pending finite-difference run of coordinate ``i`` the other way (its run
+        came back broken by a check its base passes, say) and return the new point; None,
+        and nothing changed, when the other way leaves the box or breaks a check."""
+        u = self._fd_base
+        for k, (kind, _, tag) in enumerate(self._pending):
+            if kind == "fd" and tag[0] == i:
+                h = tag[1]
+                w = u.copy()
+                w[i] -= h
+                if not self.lower[i] <= w[i] <= self.upper[i] or (
+                        self.breaks is not None and self.breaks(w, u)):
+                    return None
+                self._pending[k] = ("fd", w, (i, -h))
+                return w
+        raise ValueError(f"no finite-difference run of coordinate {i} is pending")
 
     def _receive(self, results: list[tuple[np.ndarray | None, Any]]
                  ) -> list[tuple[tuple[str, np.ndarray, Any], Point]]:

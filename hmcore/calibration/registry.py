@@ -10,10 +10,11 @@ AGENTS = ("sac", "sac-paper", "random", "sobol", "cmaes", "de", "bo", "lm", "esm
 DEFAULT_AGENT = "lm"
 """The method a campaign runs unless told otherwise: the winner of the equal-budget benchmark
 (docs/benchmarks.md: how it was measured, and the method it replaced)."""
-VERSIONS = {"sac": 1, "lm": 2}
+VERSIONS = {"sac": 1, "lm": 3}
 """A method whose proposals changed: campaigns are bound to the version that made their calls
 (a resume under another version is refused; a benchmark names its campaigns after it).
-``lm`` 2: speculative Jacobian columns beside each trial point."""
+``lm`` 2: speculative Jacobian columns beside each trial point; 3: no call on a point already
+simulated, physics checks as the edge of the domain, restarts instead of stalls."""
 
 
 ABLATIONS: dict[str, tuple[str, dict]] = {

@@ -25,21 +25,46 @@ forward difference of :mod:`hmcore.calibration.least_squares`:
 A failed run (a residual vector of None) at the start or at a trial ends the descent
 (``failed``); in a Jacobian its column is 0. Non-finite residuals at a trial shrink the
 radius, as in scipy.
+
+With ``breaks`` (whether a point breaks a check that another passes, decided before any run:
+:class:`~hmcore.calibration.least_squares.AskTellLeastSquares`), a check's boundary is handled
+like a bound: a finite-difference step that would cross it goes the other way; where a check
+breaks within a finite-difference step of the current point along a coordinate, that edge is
+the coordinate's bound for the iteration (:meth:`TrustRegionReflective._edges`: the
+Coleman-Li scaling then slows the steps towards it and trial steps reflect off it, so a
+descent slides along the edge instead of stopping at it); and a trial step that would still
+cross a check from the current point (an edge across the coordinates, further away) is cut
+where it reaches the edge (found by bisection on ``breaks``, no run needed), then kept 0.995
+of the way as scipy keeps a step inside the box, with the reduction the model predicts for
+the shorter step. When the cut step is shorter than :data:`MIN_TRUNCATED_STEP` (the current
+point is at the edge in that direction), the trial is not asked at all: it is taken as
+non-finite residuals (the radius shrinks to a quarter of the step and another trial is
+tried, as scipy does on a point outside ``fun``'s domain), counted in ``skipped``, not in
+``nfev``. After :data:`MAX_SKIPPED_IN_ROW` in a row the descent ends (``status`` None,
+``reason`` says why). Without ``breaks`` the solver is scipy's, point for point.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.linalg import norm
 from scipy.linalg import svd
-from scipy.optimize._lsq.common import (CL_scaling_vector, check_termination, compute_grad,
-                                        in_bounds, make_strictly_feasible,
-                                        solve_lsq_trust_region, update_tr_radius)
+from scipy.optimize._lsq.common import (
+    CL_scaling_vector,
+    check_termination,
+    compute_grad,
+    evaluate_quadratic,
+    in_bounds,
+    make_strictly_feasible,
+    solve_lsq_trust_region,
+    update_tr_radius,
+)
 from scipy.optimize._lsq.trf import select_step
 
 from hmcore.calibration.least_squares import AskTellLeastSquares
@@ -50,6 +75,16 @@ STATUS = {0: "the residual evaluations allowed are spent",
           3: "the step is below xtol",
           4: "the cost reduction and the step are below ftol and xtol"}
 """Why a descent ended, by scipy's status number."""
+EDGE_BISECTIONS = 20
+"""Bisections that find where a trial step reaches a check's edge (to a millionth of it)."""
+EDGE_MARGIN = 1e-10
+"""The least distance from ``x`` of a bound at a check's edge."""
+MIN_TRUNCATED_STEP = 1e-4
+"""A trial step cut at a check's edge is tried when at least this long (scaled units); a
+shorter one means the current point is at the edge in that direction: the radius shrinks."""
+MAX_SKIPPED_IN_ROW = 40
+"""Trial points crossing a check, in a row, before a descent ends: each shrinks the radius to
+a quarter, so 40 take it from the box's size to below a float's resolution."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +101,8 @@ class _Scaled:
     s: np.ndarray
     V: np.ndarray
     theta: float  # how far a step may go towards a bound (0.995 of the way, or more)
+    lower: np.ndarray  # the bounds of this iteration's trials: the box, or a check's edge
+    upper: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -88,9 +125,10 @@ class TrustRegionReflective(AskTellLeastSquares):
 
     def __init__(self, u0: np.ndarray, fd_step: float, *, lower: np.ndarray | None = None,
                  upper: np.ndarray | None = None, max_nfev: int | None = None,
-                 ftol: float = 1e-8, xtol: float = 1e-8, gtol: float = 1e-8):
+                 ftol: float = 1e-8, xtol: float = 1e-8, gtol: float = 1e-8,
+                 breaks: Callable[[np.ndarray, np.ndarray], bool] | None = None):
         x0 = np.atleast_1d(np.asarray(u0)).astype(float)
-        super().__init__(x0.size, fd_step, lower, upper)
+        super().__init__(x0.size, fd_step, lower, upper, breaks)
         if not in_bounds(x0, self.lower, self.upper):
             raise ValueError(f"the start point {x0.tolist()} is outside the bounds")
         if max_nfev is not None and max_nfev <= 0:
@@ -103,6 +141,8 @@ class TrustRegionReflective(AskTellLeastSquares):
         self.g: np.ndarray | None = None
         self.cost = math.nan
         self.nfev = 0
+        self.skipped = 0  # trial points not asked: they cross a check the current point passes
+        self._skipped_in_row = 0
         self.iteration = 0
         self.status: int | None = None
         self.failed = False
@@ -159,7 +199,8 @@ class TrustRegionReflective(AskTellLeastSquares):
         """An outer iteration at the current point: stop, or prepare the scaled trust-region
         problem and ask for the first trial."""
         x, g, f, J = self.x, self.g, self.f, self.J
-        v, dv = CL_scaling_vector(x, g, self.lower, self.upper)
+        lower, upper = self._edges()
+        v, dv = CL_scaling_vector(x, g, lower, upper)
         g_norm = norm(g * v, ord=np.inf)
         if g_norm < self.gtol:
             self.status = 1
@@ -177,25 +218,80 @@ class TrustRegionReflective(AskTellLeastSquares):
         J_augmented[m:] = np.diag(diag_h**0.5)
         U, s, V = svd(J_augmented, full_matrices=False)
         self._scaled = _Scaled(d, diag_h, d * g, J_augmented[:m], U.T.dot(f_augmented), s, V.T,
-                               max(0.995, 1 - g_norm))
+                               max(0.995, 1 - g_norm), lower, upper)
         self.actual_reduction = -1
         self._next_trial()
 
     def _next_trial(self) -> None:
-        """Ask for a trial point from the current one, or end the outer iteration."""
-        if not (self.actual_reduction <= 0 and self.nfev < self.max_nfev):
-            self._end_iteration()
-            return
-        h = self._scaled
-        m, n = h.J_h.shape
-        p_h, self.alpha, _ = solve_lsq_trust_region(n, m, h.uf, h.s, h.V, self.Delta,
-                                                    initial_alpha=self.alpha)
-        p = h.d * p_h
-        step, step_h, predicted = select_step(self.x, h.J_h, h.diag_h, h.g_h, p, p_h, h.d,
-                                              self.Delta, self.lower, self.upper, h.theta)
-        x_new = make_strictly_feasible(self.x + step, self.lower, self.upper, rstep=0)
-        self._trial = _Trial(x_new, step, step_h, predicted)
-        self._pending = [("trial", x_new.copy(), None)]
+        """Ask for a trial point from the current one, or end the outer iteration; a trial
+        step that crosses a check the current point passes is cut at the check's edge, or,
+        when that leaves too short a step, taken as non-finite and not asked (see the module
+        docstring)."""
+        while True:
+            if not (self.actual_reduction <= 0 and self.nfev < self.max_nfev):
+                self._end_iteration()
+                return
+            h = self._scaled
+            m, n = h.J_h.shape
+            p_h, self.alpha, _ = solve_lsq_trust_region(n, m, h.uf, h.s, h.V, self.Delta,
+                                                        initial_alpha=self.alpha)
+            p = h.d * p_h
+            step, step_h, predicted = select_step(self.x, h.J_h, h.diag_h, h.g_h, p, p_h, h.d,
+                                                  self.Delta, h.lower, h.upper, h.theta)
+            x_new = make_strictly_feasible(self.x + step, h.lower, h.upper, rstep=0)
+            if self.breaks is not None and self.breaks(x_new, self.x):
+                t = self._inside(step) * h.theta
+                if t * norm(step) >= MIN_TRUNCATED_STEP:  # up to the check's edge, as a bound
+                    step, step_h = t * step, t * step_h
+                    predicted = -evaluate_quadratic(h.J_h, h.g_h, step_h, diag=h.diag_h)
+                    x_new = make_strictly_feasible(self.x + step, h.lower, h.upper, rstep=0)
+            if self.breaks is None or not self.breaks(x_new, self.x):
+                self._skipped_in_row = 0
+                self._trial = _Trial(x_new, step, step_h, predicted)
+                self._pending = [("trial", x_new.copy(), None)]
+                return
+            self.skipped += 1
+            self._skipped_in_row += 1
+            if self._skipped_in_row >= MAX_SKIPPED_IN_ROW:
+                self._finish(f"{MAX_SKIPPED_IN_ROW} trial points in a row cross a check the "
+                             "current point passes")
+                return
+            self.Delta = 0.25 * norm(step_h)  # as scipy on non-finite residuals
+
+    def _edges(self) -> tuple[np.ndarray, np.ndarray]:
+        """The bounds of this iteration's trials: the box, tightened along each coordinate to
+        where a check that ``x`` passes breaks within a finite-difference step of ``x`` (the
+        edge found by bisection; at least :data:`EDGE_MARGIN` away, so that ``x`` stays
+        strictly inside, as the trust-region scaling needs)."""
+        lower, upper = self.lower.copy(), self.upper.copy()
+        if self.breaks is None:
+            return lower, upper
+        for i in range(self.x.size):
+            for sign in (1.0, -1.0):
+                step = np.zeros_like(self.x)
+                step[i] = sign * self.fd_step
+                x_far = make_strictly_feasible(self.x + step, self.lower, self.upper, rstep=0)
+                if not self.breaks(x_far, self.x):
+                    continue
+                edge = self.x[i] + sign * max(self._inside(step) * self.fd_step, EDGE_MARGIN)
+                if sign > 0:
+                    upper[i] = min(upper[i], edge)
+                else:
+                    lower[i] = max(lower[i], edge)
+        return lower, upper
+
+    def _inside(self, step: np.ndarray) -> float:
+        """How far along ``step`` from ``x`` the points still pass the checks ``x`` passes:
+        the largest such fraction found by :data:`EDGE_BISECTIONS` bisections (0 when none)."""
+        lo, hi = 0.0, 1.0
+        for _ in range(EDGE_BISECTIONS):
+            mid = 0.5 * (lo + hi)
+            x_mid = make_strictly_feasible(self.x + mid * step, self.lower, self.upper, rstep=0)
+            if self.breaks(x_mid, self.x):
+                hi = mid
+            else:
+                lo = mid
+        return lo
 
     def _told_trial(self, f_new: np.ndarray) -> None:
         t = self._trial

@@ -44,13 +44,14 @@ class Proposer(Protocol):
 @runtime_checkable
 class Driver(Protocol):
     """A method that runs its own loop (SB3's ``learn()``, say) instead of ask/tell: it is
-    handed the evaluator and returns every record in call order; it never runs the simulator
-    itself and replays ``done`` (journaled) calls instead of evaluating them."""
+    handed the campaign's :class:`~hmcore.calibration.calls.BudgetedCalls` (the space, the
+    budget, the journal to replay, the points simulated, the pre-simulation checks) and
+    returns every record in call order; it never runs the simulator itself. A driver that
+    counts its own steps as calls says so with ``reuses_points = False``."""
 
     name: str
 
-    def drive(self, space, evaluate_batch, budget: int, workers: int,
-              done: dict[int, dict] | None = None) -> list[dict]: ...
+    def drive(self, calls, workers: int) -> list[dict]: ...
 
 
 class Sampler:

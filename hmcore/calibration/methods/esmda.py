@@ -8,7 +8,9 @@ evaluated: ``N * (n_a + 1)`` calls, every member a call; the calls left by the r
 the posterior mean and then to members of the posterior redrawn from its mean and covariance.
 ``n_a = min(4, budget // 10)`` (at least 1) and ``N = budget // (n_a + 1)``, at least 2.
 Members are clipped to the box before they run. A failed member has no residuals: the update
-uses the others, and the failed one is replaced by a copy of a random updated member.
+uses the others, and the failed one is replaced by a copy of a random updated member (a copy
+that stays a copy is not simulated twice: its record is reused, and the call goes to the
+redrawn posterior members at the end).
 """
 
 from __future__ import annotations
@@ -40,12 +42,10 @@ class ESMDADriver:
         self.seed = seed
         self.rng = np.random.default_rng(seed)
 
-    def drive(self, space, evaluate_batch, budget: int, workers: int,
-              done: dict[int, dict] | None = None) -> list[dict]:
+    def drive(self, calls: BudgetedCalls, workers: int) -> list[dict]:
         import iterative_ensemble_smoother as ies
 
-        n, n_a = plan(budget)
-        calls = BudgetedCalls(space, evaluate_batch, budget, done, self.name)
+        n, n_a = plan(calls.budget)
         X = self.rng.uniform(-1.0, 1.0, (self.dim, n))
         smoother = None
         try:
@@ -71,10 +71,12 @@ class ESMDADriver:
             calls.run(X.T, phase="posterior")
             extra = [np.clip(X.mean(axis=1), -1.0, 1.0)]
             cov = np.cov(X) + 1e-9 * np.eye(self.dim)
-            while len(extra) < calls.left:
-                extra.append(np.clip(self.rng.multivariate_normal(X.mean(axis=1), cov), -1, 1))
-            if calls.left > 0:
+            while calls.left > 0:  # more than once only when a point was simulated already
+                while len(extra) < calls.left:
+                    extra.append(np.clip(self.rng.multivariate_normal(X.mean(axis=1), cov),
+                                         -1, 1))
                 calls.run(np.array(extra[: calls.left]), phase="posterior_extra")
+                extra = []
         except BudgetExhausted:
             pass
         return calls.records

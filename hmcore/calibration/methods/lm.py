@@ -1,7 +1,7 @@
 """Bounded least squares on the whitened residuals of the fitted history, multi-start: the
 ask/tell solver of :mod:`hmcore.calibration.trust_region_reflective` (scipy's trust-region
 reflective algorithm, ``least_squares(method="trf")``, on [-1, 1]^d), driven here over the
-budgeted calls.
+campaign's calls.
 
 The residual vector of a call is the noise-whitened ``(simulated - observed) / sigma`` of the
 case's :class:`hmcore.scoring.observations.ObservationSet` (the campaign stores it in the
@@ -9,14 +9,37 @@ record), plus one entry ``sqrt(P * chi2 / E)`` for a physics penalty P, so that 
 squares weighs a penalty as the reward ``-E - P`` does. The Jacobian is a forward difference
 of step ``FD_STEP`` in action units, its d runs sent to the workers together; every run is a
 call. A failed run has no residuals: at the current point it ends that descent, in a Jacobian
-its column is left at 0. When a descent converges with budget left, a new one starts from a
-uniform-random point (the first starts at the box's centre), until the budget is spent.
+its column is left at 0.
 
 Workers are not left idle by the serial steps (version 2): each point the solver asks is sent
 together with the first W - 1 finite-difference runs of the Jacobian at that point, so that
 when the step is accepted (it usually is) those columns are already there. A rejected step
 wastes them: W - 1 calls. Version 1 sent the trial point alone, and a 2-worker campaign ran
 32 % above the simulator time per worker on PUNQ-S3 (one worker idle at every step).
+
+Calls are spent where they tell something (version 3):
+
+* **Physics checks as the edge of the domain.** Where the campaign knows a point's
+  pre-simulation checks (:class:`~hmcore.calibration.calls.PhysicsPrecheck`: the
+  porosity-permeability trend, kv/kh, caps, pore volume), a finite-difference step that would
+  break a check its base passes goes the other way, and a trial point that would break one
+  the current point passes is not simulated (the solver shrinks its step: see
+  :mod:`~hmcore.calibration.trust_region_reflective`). A Jacobian run that comes back
+  penalised or failed where its base is valid (a check on the simulated responses, which
+  nothing predicts) is run once more the other way, when that stays in the box and breaks no
+  known check; the other way's run replaces it unless it failed where the first had
+  residuals.
+* **No point twice.** A point the campaign has simulated is never simulated again (the
+  calls hand back its record: :class:`~hmcore.calibration.calls.BudgetedCalls`), and a descent
+  whose trial point is one the campaign has simulated is retracing itself: it ends there.
+* **Restarts instead of stalls.** A descent ends when it converges (scipy's tolerances; the
+  Jacobian scipy computes at the converged point is not asked for), when its start or a trial
+  fails to run, when a trial repeats a simulated point, when an accepted trial lowers its sum
+  of squares by less than :data:`STALL_FTOL` of it (a new Jacobian there would cost d calls
+  for less), or after :data:`STALL_TRIALS` rejected trials in a row; with budget left, the
+  next descent starts from a uniform-random
+  point (the first starts at the box's centre) that breaks no pre-simulation check (up to
+  :data:`START_DRAWS` draws; the first draw when none passes).
 """
 
 from __future__ import annotations
@@ -27,10 +50,19 @@ import numpy as np
 
 from hmcore.calibration.calls import BudgetedCalls, BudgetExhausted
 from hmcore.calibration.registry import VERSIONS
-from hmcore.calibration.trust_region_reflective import TrustRegionReflective
+from hmcore.calibration.trust_region_reflective import STATUS, TrustRegionReflective
 
 FD_STEP = 0.05
 VERSION = VERSIONS["lm"]  # what the campaign store binds a lm campaign to
+STALL_TRIALS = 3
+"""Rejected trials in a row (each a call, and W - 1 speculative Jacobian runs) that end a
+descent."""
+STALL_FTOL = 1e-3
+"""An accepted trial that lowers the descent's sum of squares by less than this fraction of
+it ends the descent: on whitened residuals, a chi-square unit or less for a history of a
+thousand values, below what the noise lets a fit tell apart."""
+START_DRAWS = 20
+"""Uniform draws tried for a restart's start point that breaks no pre-simulation check."""
 
 
 def residuals_of(record: dict) -> np.ndarray | None:
@@ -45,6 +77,12 @@ def residuals_of(record: dict) -> np.ndarray | None:
     return np.append(r, 0.0)
 
 
+def broken_at(run: dict, base: dict | None) -> bool:
+    """Whether a Jacobian ``run`` came back penalised or failed where its ``base`` is valid."""
+    return (base is not None and base.get("status") == "COMPLETE"
+            and run.get("status") in ("INVALID", "FAIL"))
+
+
 class LMDriver:
     name = "lm"
     needs_residuals = True
@@ -53,53 +91,132 @@ class LMDriver:
         self.dim = dim
         self.rng = np.random.default_rng(seed)
         self.descents: list[dict] = []
+        """Each descent's end: its point and cost (None when it failed to run), and why."""
 
-    def drive(self, space, evaluate_batch, budget: int, workers: int,
-              done: dict[int, dict] | None = None) -> list[dict]:
-        calls = BudgetedCalls(space, evaluate_batch, budget, done, self.name)
+    def drive(self, calls: BudgetedCalls, workers: int) -> list[dict]:
         x0 = np.zeros(self.dim)
         while calls.left > 0:
-            solver = TrustRegionReflective(x0, FD_STEP, max_nfev=calls.left)
+            solver = TrustRegionReflective(x0, FD_STEP, max_nfev=calls.left,
+                                           breaks=calls.breaks)
+            descent = Descent(solver, calls, workers)
             try:
-                self._descend(solver, calls, workers)
+                descent.run()
             except BudgetExhausted:
                 break
-            self.descents.append({"x": None, "cost": None, "status": "failed run"}
-                                 if solver.failed else
-                                 {"x": solver.x.tolist(), "cost": float(solver.cost),
-                                  "status": int(solver.status)})
-            x0 = self.rng.uniform(-1.0, 1.0, self.dim)
+            ran = not solver.failed and solver.f is not None
+            self.descents.append({"x": solver.x.tolist() if ran else None,
+                                  "cost": float(solver.cost) if ran else None,
+                                  "reason": descent.reason or solver.reason})
+            x0 = self._start(calls)
         return calls.records
 
-    def _descend(self, solver: TrustRegionReflective, calls: BudgetedCalls,
-                 workers: int) -> None:
-        """One descent: each point the solver asks goes out with the first W - 1 runs of the
-        Jacobian there (version 2); a Jacobian it asks takes the runs already made."""
-        residuals: dict[tuple, np.ndarray] = {}  # the residuals at each point asked
-        columns: dict[tuple, dict[int, dict]] = {}  # speculative Jacobian runs at a point
+    def _start(self, calls: BudgetedCalls) -> np.ndarray:
+        """A restart's start point: the first of :data:`START_DRAWS` uniform draws that
+        breaks no pre-simulation check (the first draw when none passes, or nothing is
+        known before a run)."""
+        first = self.rng.uniform(-1.0, 1.0, self.dim)
+        if calls.precheck is None or not calls.kinds(first):
+            return first
+        for _ in range(START_DRAWS - 1):
+            x = self.rng.uniform(-1.0, 1.0, self.dim)
+            if not calls.kinds(x):
+                return x
+        return first
 
-        def key_of(x: np.ndarray) -> tuple:
-            return tuple(np.round(x, 12))
 
+class Descent:
+    """One descent of the solver over the campaign's calls (see the module docstring): each
+    point the solver asks goes out with the first W - 1 runs of the Jacobian there; a
+    Jacobian it asks takes the runs already made. ``reason`` says why it ended, when it was
+    this driver's rule (a repeated point, a stall) rather than the solver's."""
+
+    def __init__(self, solver: TrustRegionReflective, calls: BudgetedCalls, workers: int):
+        self.solver = solver
+        self.calls = calls
+        self.workers = workers
+        self.dim = solver.x.size
+        self.reason = ""
+        self.base: dict[tuple, dict] = {}  # the record of each point asked
+        self.columns: dict[tuple, dict[int, dict]] = {}  # speculative Jacobian runs at a point
+        self.stalled = 0
+
+    @staticmethod
+    def key_of(x: np.ndarray) -> tuple:
+        return tuple(np.round(x, 12))
+
+    def run(self) -> None:
+        solver = self.solver
         while not solver.done:
             points = solver.ask()
+            if not points:
+                return
+            if solver.jacobian_asked and solver.status is not None:
+                self.reason = STATUS[solver.status]  # scipy's final Jacobian: not needed here
+                return
             if solver.jacobian_asked:
-                runs = dict(columns.get(key_of(solver.x), {}))
-                todo = [k for k in range(self.dim) if k not in runs]
-                if todo:
-                    runs.update(zip(todo, calls.run(np.array(points)[todo], phase="jacobian")))
-                solver.tell([(residuals_of(runs[k]), runs[k]) for k in range(self.dim)])
+                self._jacobian(points)
                 continue
             (x,) = points
-            key = key_of(x)
-            if key not in residuals:
-                extra = min(max(workers - 1, 0), self.dim, max(calls.left - 1, 0))
-                batch = np.vstack([x[None], solver.fd_points(x)[:extra]])
-                records = calls.run(batch, phases=["explore"] + ["jacobian"] * extra)
-                columns[key] = dict(enumerate(records[1:]))
-                r = residuals_of(records[0])
-                if r is None:
-                    solver.tell([(None, records[0])])  # ends the descent
-                    return
-                residuals[key] = r
-            solver.tell([(residuals[key], None)])
+            starting = solver.f is None
+            if not starting and self.calls.simulated(x) is not None:
+                self.reason = "a trial repeats a point the campaign has simulated"
+                return
+            record = self._point(x)
+            r = residuals_of(record)
+            if r is None:
+                solver.tell([(None, record)])  # ends the descent
+                return
+            before = solver.cost
+            solver.tell([(r, None)])
+            if not starting and self._stalls(before):
+                return
+
+    def _point(self, x: np.ndarray) -> dict:
+        """Simulate the point ``x`` with the first W - 1 Jacobian runs there; its record."""
+        calls = self.calls
+        extra = min(max(self.workers - 1, 0), self.dim, max(calls.left - 1, 0))
+        batch = np.vstack([x[None], self.solver.fd_points(x)[:extra]])
+        records = calls.run(batch, phases=["explore"] + ["jacobian"] * extra)
+        self.columns[self.key_of(x)] = dict(enumerate(records[1:]))
+        self.base[self.key_of(x)] = records[0]
+        return records[0]
+
+    def _jacobian(self, points: list[np.ndarray]) -> None:
+        """The Jacobian at the current point: the speculative runs there and the rest; a run
+        broken where its base is valid is run once more the other way."""
+        solver, calls = self.solver, self.calls
+        key = self.key_of(solver.x)
+        runs = dict(self.columns.get(key, {}))
+        todo = [k for k in range(self.dim) if k not in runs]
+        if todo:
+            runs.update(zip(todo, calls.run(np.array(points)[todo], phase="jacobian")))
+        base = self.base.get(key)
+        again = {}
+        for k in range(self.dim):
+            if broken_at(runs[k], base):
+                w = solver.reverse_fd(k)
+                if w is not None:
+                    again[k] = w
+        if again:
+            redone = calls.run(np.array(list(again.values())), phase="jacobian")
+            for k, record in zip(again, redone):
+                if not (record.get("status") == "FAIL" and runs[k].get("status") != "FAIL"
+                        and solver.reverse_fd(k) is not None):  # back: the first has residuals
+                    runs[k] = record
+        solver.tell([(residuals_of(runs[k]), runs[k]) for k in range(self.dim)])
+
+    def _stalls(self, before: float) -> bool:
+        """Whether the descent ends after a trial (``before``: the cost it started from): an
+        accepted trial that gained less than :data:`STALL_FTOL` (the Jacobian there would cost
+        d calls for less), or the :data:`STALL_TRIALS` th rejected trial in a row."""
+        cost = self.solver.cost
+        if self.solver.done:
+            return False
+        if cost < before and before - cost < STALL_FTOL * before:
+            self.reason = f"an accepted step lowered the sum of squares by less than {STALL_FTOL:g}"
+            return True
+        self.stalled = 0 if cost < before else self.stalled + 1
+        if self.stalled >= STALL_TRIALS:
+            self.reason = f"{STALL_TRIALS} trials in a row lowered the sum of squares by none"
+            return True
+        return False

@@ -16,8 +16,10 @@ from the serial loop are that the W actions of a step come from the same policy 
 learning step happens after ``ceil(100 / W)`` steps. The budget must be a multiple of W (the
 vectorised env steps every copy at once).
 
-The driver never runs the simulator: ``evaluate_batch(jobs) -> records`` is injected, and
-records already journaled (a resumed campaign) are replayed instead of simulated; SB3 is
+The driver never runs the simulator: it is handed the campaign's calls (the injected
+``evaluate_batch(jobs) -> records`` behind them), and records already journaled (a resumed
+campaign) are replayed instead of simulated; every env step is a call, also one that repeats
+a point (``learn()`` counts steps, as published); SB3 is
 deterministic for a seed on CPU, so a replayed call must ask for the journaled action, and a
 resume that does not is refused rather than mixed.
 """
@@ -25,7 +27,6 @@ resume that does not is refused rather than mixed.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
@@ -33,7 +34,6 @@ from stable_baselines3.common.vec_env import VecEnv
 from hmcore.calibration.calls import BudgetedCalls
 from hmcore.calibration.methods.env import HistoryMatchingEnv
 from hmcore.scoring.evaluation import Evaluation
-from hmcore.model.parameters import ParameterSpace
 
 
 @dataclass(frozen=True)
@@ -49,6 +49,7 @@ class PaperSAC:
     """``sac-paper``: drives SB3's ``learn()`` loop itself (see :meth:`drive`)."""
 
     name = "sac-paper"
+    reuses_points = False  # SB3's learn() counts its env steps: each one is a call, as published
 
     def __init__(self, dim: int, seed: int, settings: PaperSACSettings | None = None):
         self.dim = dim
@@ -56,21 +57,21 @@ class PaperSAC:
         self.settings = settings or PaperSACSettings()
         self.model = None
 
-    def drive(self, space: ParameterSpace, evaluate_batch: Callable[[list], list[dict]],
-              budget: int, workers: int, done: dict[int, dict] | None = None) -> list[dict]:
-        """Train SAC for ``budget`` simulator calls, ``workers`` per vectorised step; return
-        every record in call order."""
+    def drive(self, calls: BudgetedCalls, workers: int) -> list[dict]:
+        """Train SAC for the budget of simulator calls, ``workers`` per vectorised step;
+        return every record in call order."""
         import torch
         from stable_baselines3 import SAC
         from stable_baselines3.common.logger import Logger
 
+        budget = calls.budget
         if budget < 1 or workers < 1 or budget % workers:
             raise ValueError(f"sac-paper steps its {workers} env copies together, so the budget "
                              f"must be a positive multiple of workers; got budget={budget}, "
                              f"workers={workers} (try budget={max(workers, budget // workers * workers)})")
         torch.manual_seed(self.seed)
         torch.set_num_threads(1)  # leave the cores to the simulator subprocesses
-        venv = BatchedEnv(BudgetedCalls(space, evaluate_batch, budget, done, self.name), workers)
+        venv = BatchedEnv(calls, workers)
         s = self.settings
         self.model = SAC("MlpPolicy", venv, learning_rate=s.learning_rate,
                          buffer_size=s.buffer_size, batch_size=s.batch_size,
