@@ -10,7 +10,7 @@ from prefect import flow, get_run_logger
 
 from flows.campaign import DEFAULT_STORAGE, campaign_flow, check_campaign_settings
 from flows.labels import named_run
-from flows.refuse import USER_ERRORS, input_problems, refused
+from flows.refuse import USER_ERRORS, input_problems, refused, scalar_problems
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from hmcore.calibration.methods import AGENTS, method_version
@@ -85,6 +85,9 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
         if problems:
             raise ValueError("; ".join(problems))
         loaded = load_case(case)
+        problems = scalar_problems(loaded)
+        if problems:
+            raise ValueError("; ".join(problems))
     except USER_ERRORS as exc:
         return refused(exc)
     bench, reference, campaigns = bench_names(loaded.name, methods, seeds, name)

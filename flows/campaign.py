@@ -11,7 +11,7 @@ from prefect import flow, get_run_logger
 from pydantic import Field
 
 from flows.labels import Progress, campaign_run_name, tag_flow_run
-from flows.refuse import USER_ERRORS, input_problems, refused
+from flows.refuse import USER_ERRORS, input_problems, refused, scalar_problems
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from hmcore.calibration.calls import Job, PhysicsPrecheck
@@ -165,6 +165,9 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
             raise ValueError("; ".join(problems))
         storage = str(Path(storage).expanduser().resolve())
         loaded = load_case(case)
+        problems = scalar_problems(loaded)
+        if problems:
+            raise ValueError("; ".join(problems))
         origin = fork_origin(storage, forked_from) if forked_from else None
     except USER_ERRORS as exc:
         return refused(exc)

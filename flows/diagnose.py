@@ -25,7 +25,7 @@ import pandas as pd
 from prefect import flow, get_run_logger
 from pydantic import Field
 
-from flows.refuse import USER_ERRORS, input_problems, refused
+from flows.refuse import USER_ERRORS, input_problems, refused, scalar_problems
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from hmcore.cases import BUILTIN_CASES, load_case
@@ -128,6 +128,9 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
         if problems:
             raise ValueError("; ".join(problems))
         loaded = load_case(case)
+        problems = scalar_problems(loaded)
+        if problems:
+            raise ValueError("; ".join(problems))
         opts = dict(settings or {})
         unknown = sorted(set(opts) - {f.name for f in dataclasses.fields(DiagnosisSettings)})
         if unknown:

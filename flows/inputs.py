@@ -1,5 +1,6 @@
 """The parameter rules of a campaign, a benchmark and a diagnosis: a known method, a budget and
-worker count the method can run with, a known task runner.
+worker count the method can run with, a known task runner, and a case with scalar parameters
+for the method to move.
 
 The one home of these rules: a flow checks them and returns a Failed state
 (:mod:`flows.refuse`); the command line checks them before it starts Prefect and exits 2. So
@@ -10,9 +11,13 @@ line sets them after its input is checked).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from flows.runners import RUNNERS
 from hmcore.calibration.registry import METHODS
+
+if TYPE_CHECKING:  # the case module imports pandas: keeps `hmflow --help` fast
+    from hmcore.model.case import Case
 
 
 def as_parameter(name: str) -> str:
@@ -42,3 +47,17 @@ def input_problems(agent: str | None = None, budget: int | None = None,
         problems.append(f"{spell('task_runner')} must be one of {list(RUNNERS)}, "
                         f"got {task_runner!r}")
     return problems
+
+
+def scalar_problems(loaded: Case) -> list[str]:
+    """A calibration (a campaign's method, a benchmark's, a diagnosis's) moves the case's
+    scalar parameters: a case of field parameters only has none, and is refused in one line
+    before anything runs; [] for any other case (its fields, if any, are left at the deck's
+    values: they are the ensemble smoother's, docs/ensembles.md)."""
+    if loaded.space.parameters or not loaded.fields:
+        return []
+    names = ", ".join(f.name for f in loaded.fields)
+    return [(f"case {loaded.name} ({loaded.source}) has field parameters only ({names}) and "
+             "no scalar parameter for a calibration method to move (fix: add a scalar "
+             "[[parameters]] table, e.g. kind = \"multiply\"; the fields are matched by the "
+             "ensemble smoother, docs/ensembles.md)")]

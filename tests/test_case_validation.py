@@ -106,6 +106,27 @@ def test_missing_or_nan_value(tmp_path, value):
                          what=r"value is missing, NaN or infinite")
 
 
+def test_a_column_of_true_and_false_is_not_read_as_numbers(tmp_path):
+    """pandas reads a column of TRUE/FALSE as booleans, which would pass as 1 and 0: a sigma
+    or value of TRUE is not a number (hypothesis found sigma TRUE taken as 1.0)."""
+    rows = [f"{r},TRUE" for r in GOOD_ROWS]
+    probs = problems_of(write_case_toml(
+        tmp_path / "case.toml", deck=PUNQ_DECK, name="t", history_end_days=None,
+        observed=write_csv(tmp_path / "observed.csv", rows, HEADER + ",sigma")))
+    assert len(probs) == len(GOOD_ROWS)
+    one_problem_matching(probs, where=r"observed\.csv line 2$", what=r"sigma 'True' is not a number")
+    rows = [GOOD_ROWS[0] + ",TRUE"] + [f"{r}," for r in GOOD_ROWS[1:]]  # with empty cells
+    probs = problems_of(write_case_toml(
+        tmp_path / "case.toml", deck=PUNQ_DECK, name="t", history_end_days=None,
+        observed=write_csv(tmp_path / "observed.csv", rows, HEADER + ",sigma")))
+    assert len(probs) == 1
+    one_problem_matching(probs, where=r"observed\.csv line 2$", what=r"sigma 'True' is not a number")
+    rows = [",".join(r.split(",")[:3] + ["TRUE"]) for r in GOOD_ROWS]
+    probs = problems_of(make_case(tmp_path, rows))
+    one_problem_matching(probs, where=r"observed\.csv line 2$",
+                         what=r"value is missing, NaN or infinite")
+
+
 @pytest.mark.parametrize("quantity", ["WOPR", "WWPR", "WGPR", "WGOR", "WWCT"])
 def test_negative_rate(tmp_path, quantity):
     probs = problems_of(make_case(tmp_path, GOOD_ROWS + [f"PRO-1,31.0,{quantity},-5"]))

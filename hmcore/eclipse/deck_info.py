@@ -70,6 +70,13 @@ class DeckInfo:
     @staticmethod
     def inspect(path: Path) -> "DeckInfo":
         """Parse ``path`` with opm.io; raise CaseError listing every problem found."""
+        return DeckInfo.inspect_parsed(path)[0]
+
+    @staticmethod
+    def inspect_parsed(path: Path) -> tuple["DeckInfo", "ParsedDeck"]:
+        """As :meth:`inspect`, with OPM's parsed deck and state too, for a caller that reads
+        more of them (a field's grid, :func:`hmcore.fields.grid.from_parsed`) without parsing
+        the deck a second time."""
         path = Path(path).resolve()
         if not path.is_file():
             raise CaseError([Problem(str(path), "deck file not found",
@@ -102,10 +109,21 @@ class DeckInfo:
                 if arr.size:
                     scale = 1.0 / MILLIDARCY_M2 if kw.startswith("PERM") else 1.0
                     props[kw] = (float(arr.min()) * scale, float(arr.max()) * scale)
-        return DeckInfo(path, names, wells, (grid.nx, grid.ny, grid.nz), grid.nactive, start,
+        info = DeckInfo(path, names, wells, (grid.nx, grid.ny, grid.nz), grid.nactive, start,
                         days, props, CellProperties.from_parsed(deck, state),
                         read_history(deck, days, wells), tuple(state.faultNames()), warnings,
                         _region_numbers(state), _grid_keywords(deck))
+        return info, ParsedDeck(path, deck, state)
+
+
+@dataclass(frozen=True, eq=False)
+class ParsedDeck:
+    """A deck as OPM's parser read it: opm.io's ``Deck`` and its ``EclipseState``. Kept only
+    while a case is validated (opm.io's objects are not pickled with a case)."""
+
+    path: Path
+    deck: object = field(repr=False)
+    state: object = field(repr=False)
 
 
 def _region_numbers(state) -> dict[str, tuple[int, ...]]:

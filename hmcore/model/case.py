@@ -49,6 +49,9 @@ observed history is collected and raised together as one :class:`CaseError`::
     keywords = ["PERMX"]
     low = 0.3
     high = 3.0
+
+    # a [[parameters]] table with kind = "field" (PORO, PERMX... per active cell, and its
+    # prior) and the [ensemble] section: see hmcore.model.case_fields
 """
 
 from __future__ import annotations
@@ -56,15 +59,19 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass, field
 from datetime import date, datetime
+from functools import partial
 from pathlib import Path
 from typing import Literal
 
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from hmcore.eclipse.deck_info import DeckInfo
+from hmcore.eclipse.deck_info import DeckInfo, ParsedDeck
 from hmcore.eclipse.history import controlled_mask
 from hmcore.errors import CaseError, Problem
+from hmcore.fields.ensemble import EnsembleSpec
+from hmcore.fields.spec import FieldSpec
+from hmcore.model import case_fields
 from hmcore.model.noise_section import (
     NoiseSection,
     QuantityNoise,
@@ -153,7 +160,8 @@ class CaseFile(BaseModel):
     misfit: MisfitSettings = MisfitSettings()
     simulator: SimulatorSettings = SimulatorSettings()
     physics: PhysicsSettings = PhysicsSettings()
-    parameters: tuple[Parameter, ...] | None = None
+    parameters: tuple[case_fields.ParameterEntry, ...] | None = None
+    ensemble: EnsembleSpec = EnsembleSpec()
     noise: dict[str, QuantityNoise] = {}
 
 
@@ -175,6 +183,11 @@ class Case:
     physics: PhysicsSettings
     noise: NoiseSection = field(default_factory=dict)
     """The ``[noise]`` statements: quantity -> stated measurement error."""
+    fields: tuple[FieldSpec, ...] = ()
+    """The ``kind = "field"`` parameters (``space`` holds the scalar ones), a files prior's
+    folder resolved against the case file."""
+    ensemble: EnsembleSpec = field(default_factory=EnsembleSpec)
+    """The ``[ensemble]`` section (its defaults when the file has none)."""
 
     @property
     def informative(self) -> pd.DataFrame:
@@ -241,23 +254,18 @@ def case_file_name(path: Path) -> str:
     return name
 
 
-def _parameters(cfg: CaseFile | None, data: dict) -> tuple[tuple[Parameter, ...], bool]:
-    """The case's parameters (the reference five when the file gives none) and whether the
-    file gives any; when the file has problems elsewhere, the parameters that are valid by
-    themselves, so that they are checked against the deck in the same pass."""
-    if cfg is not None:
-        given = cfg.parameters is not None
-        return (cfg.parameters if given else reference_parameters()), given
+def _parameters(cfg: CaseFile | None, data: dict
+                ) -> tuple[tuple[Parameter, ...], list[tuple[int, FieldSpec]], bool]:
+    """The case's scalar parameters (the reference five when the file gives no
+    ``[[parameters]]``), its fields with their index in the list, and whether the file gives
+    any; when the file has problems elsewhere, the entries that are valid by themselves, so
+    that they are checked against the deck in the same pass."""
     raw = data.get("parameters")
-    if raw is None:
-        return reference_parameters(), False
-    valid = []
-    for item in raw if isinstance(raw, list) else []:
-        try:
-            valid.append(Parameter.model_validate(item))
-        except ValidationError:
-            continue
-    return tuple(valid), True
+    if (cfg.parameters if cfg is not None else raw) is None:
+        return reference_parameters(), [], False
+    entries = list(enumerate(cfg.parameters)) if cfg is not None else case_fields.valid_entries(raw)
+    return (tuple(p for _, p in entries if isinstance(p, Parameter)),
+            [(i, f) for i, f in entries if isinstance(f, FieldSpec)], True)
 
 
 def _case_path(case: str | Path) -> Path:
@@ -323,9 +331,10 @@ def load_case_file(case: str | Path) -> Case:
                                         "give a plain path, relative to the case file or "
                                         "absolute"))
     deck, observed_path = located.get("deck"), located.get("observed")
+    parsed: ParsedDeck | None = None
     if deck is not None:  # checked even when other keys are wrong: all problems at once
         try:
-            info = DeckInfo.inspect(deck)
+            info, parsed = DeckInfo.inspect_parsed(deck)
         except CaseError as exc:
             problems.extend(exc.problems)
     if observed_path is not None:
@@ -333,8 +342,8 @@ def load_case_file(case: str | Path) -> Case:
             observed_path, info.unit_system if info is not None else None,
             info.start if info is not None else None)
         problems.extend(obs_problems)
-    params, given = _parameters(cfg, data)
-    names = [p.name for p in params]
+    params, fields, given = _parameters(cfg, data)
+    names = [p.name for p in params] + [f.name for _, f in fields]
     if given and data.get("parameters") == []:
         problems.append(Problem(f"{path} key 'parameters'", "the [[parameters]] list is empty",
                                 "add at least one [[parameters]] table, or remove the key to "
@@ -367,6 +376,10 @@ def load_case_file(case: str | Path) -> Case:
         clean = [p for p in params if not any(x.where == f"{where} '{p.name}'"
                                               for x in deck_problems)]
         problems.extend(parameter_problems(clean, info, where))
+    if fields:
+        ensemble = cfg.ensemble if cfg is not None else None
+        problems.extend(case_fields.field_problems(path, fields, parsed, case_fields.ensemble_size(
+            ensemble, data.get("ensemble")), partial(_relative_to, path)))
     if info is not None and observed is not None:
         problems.extend(_check_observed_against_deck(observed, info, observed_path))
     problems.extend(noise_name_problems(data.get("noise"), str(path),
@@ -403,7 +416,9 @@ def load_case_file(case: str | Path) -> Case:
         raise CaseError([_before_first(path, end, float(informative.days.min()))])
     return Case(cfg.case.name, path, deck.resolve(), observed_path.resolve(), observed,
                 ParameterSpace(parameters=tuple(params)), info, cfg.case.time_tolerance_days,
-                end, cfg.misfit, cfg.simulator, cfg.physics, dict(cfg.noise))
+                end, cfg.misfit, cfg.simulator, cfg.physics, dict(cfg.noise),
+                tuple(case_fields.resolved(f, partial(_relative_to, path)) for _, f in fields),
+                cfg.ensemble)
 
 
 def _before_first(path: Path, end: float, first: float) -> Problem:
@@ -426,7 +441,8 @@ def _relative_to(case_file: Path, value: str) -> Path:
     return p if p.is_absolute() else (case_file.parent / p)
 
 
-_TYPE_TAGS = {"float", "int", "str", "bool", "date", "datetime", "none", "tuple", "list"}
+_TYPE_TAGS = {"float", "int", "str", "bool", "date", "datetime", "none", "tuple",
+              "list"} | case_fields.ENTRY_TAGS  # a union's types, a kind, a prior's source
 
 
 def _validation_problems(exc: ValidationError, path: Path) -> list[Problem]:
@@ -466,22 +482,28 @@ def _message(err: dict) -> str:
 
 def _hint(err: dict, key: str = "") -> str:
     if err.get("type") == "extra_forbidden":
-        return "remove the key or check its spelling" + _near_key(key)
+        return "remove the key or check its spelling" + _near_key(key, err["loc"])
     if err.get("type") == "missing":
         return "add the key"
+    if err.get("type") == "enum" and err["loc"][0] == "parameters" and key.endswith(".kind"):
+        return case_fields.kind_hint(err.get("input"))
     return "see the rule stated above"
 
 
 _SECTIONS = {"case": CaseSection, "misfit": MisfitSettings, "simulator": SimulatorSettings,
-             "physics": PhysicsSettings, "parameters": Parameter, "noise": QuantityNoise}
+             "physics": PhysicsSettings, "ensemble": EnsembleSpec, "noise": QuantityNoise}
+"""The section a key sits in -> its model (a ``[[parameters]]`` entry's model is known by its
+kind, :func:`hmcore.model.case_fields.entry_choices`)."""
 
 
-def _near_key(key: str) -> str:
-    """' (did you mean 'case.history_end_days'?)' for a mistyped key."""
-
+def _near_key(key: str, loc: tuple = ()) -> str:
+    """' (did you mean 'case.history_end_days'?)' for a mistyped key (``loc``: pydantic's
+    location of the error, which names a parameter's kind)."""
     parts = key.split(".")
     if len(parts) == 1:
         choices = list(CaseFile.model_fields)
+    elif parts[0] == "parameters":
+        choices = case_fields.entry_choices(tuple(loc))
     else:
         model = _SECTIONS.get(parts[0])
         choices = list(model.model_fields) if model is not None else []

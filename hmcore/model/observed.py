@@ -69,6 +69,10 @@ def _read(path: Path, unit_system: str | None, start: datetime | None) -> pd.Dat
         raise CaseError([Problem(str(path), f"cannot read as CSV: {exc}",
                                  "save it as comma-separated text with a header row")]) from exc
     raw.columns = [c.strip().lower() for c in raw.columns]
+    for column in ("value", "sigma", "days"):  # TRUE/FALSE cells are read as booleans,
+        if column in raw and raw[column].dtype in (bool, object):  # which would pass as 1, 0
+            raw[column] = raw[column].map(
+                lambda v: str(v) if isinstance(v, (bool, np.bool_)) else v)
     missing = [c for c in REQUIRED if c not in raw.columns]
     if "days" not in raw.columns and "date" not in raw.columns:
         missing.append("days (or date)")

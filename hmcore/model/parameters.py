@@ -242,7 +242,11 @@ class Scaling:
 
 
 class ParameterSpace(BaseModel):
-    """An ordered set of parameters; maps actions in [-1, 1]^n to physical values and back."""
+    """An ordered set of parameters; maps actions in [-1, 1]^n to physical values and back.
+
+    Empty (``dim == 0``) for a case of field parameters only (:mod:`hmcore.model.case_fields`):
+    its runs keep the deck's own values. A calibration method needs ``dim >= 1``, which the
+    command line checks before anything runs (``flows.inputs.scalar_problems``)."""
 
     model_config = ConfigDict(frozen=True)
 
@@ -254,8 +258,6 @@ class ParameterSpace(BaseModel):
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"parameter names must be unique, got duplicates {dup}")
-        if not names:
-            raise ValueError("a parameter space needs at least one parameter")
         return self
 
     @classmethod

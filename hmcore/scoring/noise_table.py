@@ -113,9 +113,10 @@ def noise_markdown(summary: pd.DataFrame) -> str:
     if summary.empty:
         return ""
     lines = ["## The noise the fit assumed", "",
-             "Sigma per row and its source: `given` in the data, `stated` in the case's "
-             "`[noise]` section, `estimated` from the series, `pooled` over other wells, "
-             "`default`, `floor` or `rate`; rho is the AR(1) correlation of consecutive rows.",
+             ("Sigma per row and its source: `given` in the data, `stated` in the case's "
+              "`[noise]` section, `estimated` from the series, `pooled` over other wells, "
+              "`default`, `floor` or `rate`; rho is the AR(1) correlation of consecutive "
+              "rows."),
              "", "| quantity | segment | wells | source | sigma | rho | flag |",
              "|---|---|---|---|---|---|---|"]
     for r in summary.itertuples():
@@ -128,9 +129,9 @@ def noise_markdown(summary: pd.DataFrame) -> str:
         lines.append(f"| {r.quantity} | {r.segment} | {wells} | {r.source} | {level} | "
                      f"{r.rho:.2f} | {flag} |")
     if summary.uninformative.any():
-        lines += ["", "An uninformative series lies within the noise floor of zero over the "
-                  "whole fitted history: the fit can hardly learn from it; state its error in "
-                  "`[noise]` to weigh it otherwise."]
+        lines += ["", ("An uninformative series lies within the noise floor of zero over the "
+                       "whole fitted history: the fit can hardly learn from it; state its error "
+                       "in `[noise]` to weigh it otherwise.")]
     return "\n".join(lines) + "\n"
 
 

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from flows.inputs import input_problems
+from flows.inputs import input_problems, scalar_problems
 from hmcore.calibration.registry import ABLATIONS, AGENTS, METHODS
 from hmflow.cli.common import (
     CASE_HELP,
@@ -49,6 +49,7 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     prefect_environment(verbose)
     storage = folder("--storage", storage)
     c = load_case(case)
+    refuse(scalar_problems(c))
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     chosen = list(AGENTS) if methods == "all" else [m.strip() for m in methods.split(",")
                                                     if m.strip()]

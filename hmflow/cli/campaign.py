@@ -8,6 +8,7 @@ from typing import Optional
 
 import typer
 
+from flows.inputs import scalar_problems
 from hmcore.calibration.registry import DEFAULT_AGENT, default_campaign_name
 from hmflow.cli.common import (
     CASE_HELP,
@@ -22,6 +23,7 @@ from hmflow.cli.common import (
     folder,
     load_case,
     print_tables,
+    refuse,
 )
 from hmflow.cli.flowrun import check_inputs, fit_workers, flow_refused, progress_columns, start_api
 from hmflow.console import Watch, campaign_poll, prefect_environment, status_text, summary_table
@@ -55,6 +57,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
 
     storage = folder("--storage", storage)
     c = load_case(case)  # clear errors before any simulator time or Prefect start-up
+    refuse(scalar_problems(c))
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     check_inputs(agent, budget, workers, task_runner)
     if fork is not None:

@@ -101,7 +101,56 @@ def check(case: str = typer.Option("synthetic", "--case", help=CASE_HELP)) -> No
                       "used: " + "; ".join(c.info.history.skipped[:5]))
     for p in c.space.parameters:
         console.print(f"  parameter {p.name:<12} {p.kind:<9} [{p.low:g}, {p.high:g}] {p.description}")
+    if c.fields:
+        console.print("\n".join(field_lines(c.fields, c.ensemble)), highlight=False,
+                      markup=False)
     console.print(case_noise_text(c), highlight=False, markup=False)
+
+
+def field_lines(fields, ensemble) -> list[str]:
+    """``check``'s lines for a case's field parameters (keyword, prior, zones, bounds) and
+    its ``[ensemble]`` settings."""
+    lines = []
+    for f in fields:
+        low, high = f.bounds
+        copies = f", copies {', '.join(f.copies)}" if f.copies else ""
+        lines.append(f"  field     {f.name:<12} {f.keyword:<6} prior {f.prior.source:<14} "
+                     f"[{low:g}, {high:g}] in {'log10' if f.in_log else 'linear'} space"
+                     f"{copies} {f.description}".rstrip())
+        lines += [f"              {line}" for line in _prior_lines(f)]
+    e = ensemble
+    localisation = e.localisation + (f" (radius {e.radius:g})" if e.radius is not None else "")
+    lines.append(f"  ensemble  {e.size} members, weights {', '.join(f'{w:g}' for w in e.weights)}"
+                 f" (inflation {', '.join(f'{a:.3g}' for a in e.alphas)}), at least {e.minimum} "
+                 f"must run, localisation {localisation}, seed {e.seed}")
+    lines.append("  note      the fields are for the ensemble smoother (docs/ensembles.md); "
+                 "`hmflow run`, `bench` and `diagnose` calibrate the scalar parameters only")
+    return lines
+
+
+def _prior_lines(f) -> list[str]:
+    """The prior of field ``f``: its seed and zones, relation, or folder."""
+    prior = f.prior
+    if prior.source == "files":
+        return [f"files {prior.pattern} in {prior.folder}, keyword {prior.keyword or f.keyword}"]
+    if prior.source == "relation":
+        return [f"u = {prior.intercept:g} + {prior.slope:g} * u({prior.from_}) + scatter "
+                f"{prior.scatter:g} (u in update space), seed {prior.seed}"]
+    head = (f"correlation {prior.correlation:g} with {prior.from_}'s normal score, "
+            if prior.source == "cosimulation" else "")
+    lines = [f"{head}seed {prior.seed}"]
+    for z in prior.zones:
+        variogram = getattr(prior, "variogram_of", lambda _: None)(z)
+        lines.append(f"zone {z.label()}: mean {z.mean:g}, sd {z.std:g}"
+                     + (f", {_variogram(variogram)}" if variogram is not None else ""))
+    return lines
+
+
+def _variogram(v) -> str:
+    major, minor, vertical = v.ranges
+    lo, hi = v.azimuth_range
+    return (f"{v.model}{f' nu {v.nu:g}' if v.model == 'matern' else ''} ranges "
+            f"{major:g}/{minor:g}/{vertical:g}, azimuth {lo:g}" + (f"-{hi:g}" if hi > lo else ""))
 
 
 @app.command()
@@ -124,6 +173,10 @@ def evaluate(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
             print_problems(f"--simulator {simulator!r} cannot run", bad)
             raise typer.Exit(2)
     values = parse_sets(set_, c.space.names)
+    if c.fields:
+        console.print("[yellow]note[/]: the field parameters ("
+                      + ", ".join(f.name for f in c.fields) + ") keep the deck's values "
+                      "(evaluate applies scalar parameters only)", highlight=False)
     bounds = c.space.check_in_bounds(values)
     if bounds:
         console.print(f"[yellow]note[/]: {'; '.join(bounds)} (evaluated anyway)")

@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from flows.inputs import input_problems
+from flows.inputs import input_problems, scalar_problems
 from hmcore.errors import CaseError
 from hmflow.cli.common import (
     CASE_HELP,
@@ -96,8 +96,10 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
 
 def check_budget(case, budget: Optional[int], kinds: Optional[tuple[str, ...]],
                  given: bool) -> None:
-    """Exit 2 with one line when ``--budget`` cannot cover the diagnosis's minimum (see
+    """Exit 2 with one line when the case has no scalar parameter to calibrate, or when
+    ``--budget`` cannot cover the diagnosis's minimum (see
     :func:`hmcore.diagnosis.workflow.minimum_runs`), before any simulator time."""
+    refuse(scalar_problems(case))
     if budget is None:
         return
     # the diagnosis imports pandas: keeps `hmflow --help` fast
