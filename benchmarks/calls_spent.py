@@ -25,19 +25,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hmcore.calibration.calls import POINT_ATOL
-from hmcore.calibration.methods.lm import FD_STEP
+from hmcore.calibration.methods.lm import jacobian_base
 from hmcore.cases import load_case
-
-
-def base_of(record: dict, rows: list[dict]) -> dict | None:
-    a = np.asarray(record["action"])
-    for other in reversed(rows[: record["index"]]):
-        if other["phase"] == "jacobian":
-            continue
-        d = np.abs(a - np.asarray(other["action"]))
-        if np.sum(d > 1e-9) == 1 and abs(d.max() - FD_STEP) < 1e-9:
-            return other
-    return None
 
 
 def repeats(u: np.ndarray, atol: float) -> tuple[int, list[int]]:
@@ -66,7 +55,7 @@ def main() -> None:
     space = load_case(args.case).space
     u = np.array([space.to_action(r["params"]) for r in rows])
     broken = [r["index"] + 1 for r in rows if r["phase"] == "jacobian" and (
-        base := base_of(r, rows)) is not None and set(r.get("violation_kinds") or ())
+        base := jacobian_base(r, rows)) is not None and set(r.get("violation_kinds") or ())
         - set(base.get("violation_kinds") or ())]
     valid = [r for r in rows if r["status"] == "COMPLETE" and r.get("E") is not None]
     best = min(valid, key=lambda r: r["E"])

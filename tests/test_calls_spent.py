@@ -14,7 +14,7 @@ from hmcore.calibration.least_squares import AskTellLeastSquares
 from hmcore.calibration.loop import calibrate
 from hmcore.calibration.methods import make_proposer
 from hmcore.calibration.methods.base import Feedback, Proposal
-from hmcore.calibration.methods.lm import FD_STEP, STALL_TRIALS
+from hmcore.calibration.methods.lm import STALL_TRIALS, jacobian_base
 from hmcore.model.parameters import Parameter, ParameterSpace
 
 SPACE = ParameterSpace(parameters=(
@@ -64,23 +64,10 @@ def batch_of(log: list | None = None, fails=lambda a: False):
     return batch
 
 
-def base_of(record: dict, records: list[dict]) -> dict | None:
-    """The base of a Jacobian run: the latest earlier non-Jacobian record one finite-difference
-    step away along one coordinate."""
-    a = np.asarray(record["action"])
-    for other in reversed(records[: record["index"]]):
-        if other["phase"] == "jacobian":
-            continue
-        d = np.abs(a - np.asarray(other["action"]))
-        if np.sum(d > 1e-9) == 1 and abs(d.max() - FD_STEP) < 1e-9:
-            return other
-    return None
-
-
 def broken_jacobian_runs(records: list[dict]) -> list[int]:
     """Jacobian runs penalised where their base passes every check."""
     return [r["index"] for r in records if r["phase"] == "jacobian" and r["status"] == "INVALID"
-            and (base_of(r, records) or {}).get("status") == "COMPLETE"]
+            and (jacobian_base(r, records) or {}).get("status") == "COMPLETE"]
 
 
 def distinct(records: list[dict]) -> int:
@@ -133,7 +120,7 @@ def test_a_jacobian_run_broken_after_its_run_is_redone_the_other_way_once():
     _, records = lm(30, check=None, log=log)
     redone = []
     for r in records:
-        base = base_of(r, records)
+        base = jacobian_base(r, records)
         if r["phase"] == "jacobian" and r["status"] == "INVALID" and base["status"] == "COMPLETE":
             a = np.asarray(r["action"])
             other = 2 * np.asarray(base["action"]) - a  # the step the other way

@@ -14,10 +14,9 @@ import numpy as np
 import pandas as pd
 import pytest
 from conftest import cli_env
-from test_calls_spent import base_of
 
 from hmcore.calibration.calls import POINT_ATOL
-from hmcore.calibration.methods.lm import FD_STEP
+from hmcore.calibration.methods.lm import FD_STEP, jacobian_base
 from hmcore.calibration.registry import DEFAULT_AGENT
 from hmcore.scoring.alignment import align
 from hmcore.cases import load_case
@@ -255,7 +254,7 @@ def test_the_default_campaign_simulates_no_point_twice_and_keeps_its_jacobian_va
     for r in rows:
         if r["phase"] != "jacobian":
             continue
-        base = base_of(r, rows)
+        base = jacobian_base(r, rows)
         assert base is not None, f"call {r['index']}: no base one step away"
         if set(r.get("violation_kinds") or ()) - set(base.get("violation_kinds") or ()):
             broken.append((r["index"], base["index"], r["violation_kinds"]))
@@ -265,8 +264,8 @@ def test_the_default_campaign_simulates_no_point_twice_and_keeps_its_jacobian_va
     turned = []
     for r in rows:
         if r["phase"] == "jacobian":
-            step = np.asarray(r["action"]) - np.asarray(base_of(r, rows)["action"])
+            step = np.asarray(r["action"]) - np.asarray(jacobian_base(r, rows)["action"])
             k = int(np.argmax(np.abs(step)))
-            if step[k] < 0 and base_of(r, rows)["action"][k] + FD_STEP <= 1.0:
+            if step[k] < 0 and jacobian_base(r, rows)["action"][k] + FD_STEP <= 1.0:
                 turned.append(r["index"])
     assert turned, "no finite-difference step turned: the campaign never met a check"

@@ -220,3 +220,18 @@ class Descent:
             self.reason = f"{STALL_TRIALS} trials in a row lowered the sum of squares by none"
             return True
         return False
+
+
+def jacobian_base(record: dict, records: list[dict]) -> dict | None:
+    """The base of a journaled Jacobian run ``record``: the latest earlier non-Jacobian record
+    of ``records`` (a campaign's, in call order) one finite-difference step (:data:`FD_STEP`,
+    either way) away along one coordinate; None when there is none. What the benchmark of
+    spent calls and the tests read a Jacobian run's base from."""
+    a = np.asarray(record["action"])
+    for other in reversed(records[: record["index"]]):
+        if other["phase"] == "jacobian":
+            continue
+        d = np.abs(a - np.asarray(other["action"]))
+        if np.sum(d > 1e-9) == 1 and abs(d.max() - FD_STEP) < 1e-9:
+            return other
+    return None
