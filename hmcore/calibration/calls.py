@@ -18,6 +18,14 @@ points cannot stall a campaign: after ``budget`` reused points, a point is simul
 
 What a point's parameter values decide before any simulator time (the physics checks on the
 deck's cells, :class:`PhysicsPrecheck`) a method may ask through :meth:`BudgetedCalls.breaks`.
+
+The calls hold the campaign's :class:`~hmcore.calibration.objective.Objective` (what a method
+is told of a call, and which call is best) and refine its noise from the residuals of the best
+call so far (:meth:`BudgetedCalls.refine_noise`): when a method asks (``lm`` at the end of a
+descent) and when the calls made pass :data:`REFINE_AT` of the budget, at most
+:data:`MAX_REFINEMENTS` times, each time from another best call. Resuming stays exact: the
+decision and the noise are functions of the records in call order, which a resumed campaign
+replays identically.
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from hmcore.calibration.objective import Objective
 from hmcore.eclipse.deck_info import DeckInfo
 from hmcore.model.case import Case, PhysicsSettings
 from hmcore.model.parameters import ParameterSpace
@@ -38,6 +47,14 @@ POINT_ATOL = 1e-6
 """Two calls are of the same point when every parameter agrees to this in scaled coordinates
 (a millionth of its half range; the whole box is 2 wide): far below a finite-difference step
 (0.05) and any step a method means to take."""
+
+
+REFINE_AT = (0.25, 0.5)
+"""Shares of the budget after which the noise is refined (when the best call changed): a
+method that never asks (a proposer) still fits under a noise refined from its fit."""
+MAX_REFINEMENTS = 3
+"""Refinements of the noise in one campaign at most (the diagnosis's iteration converges in
+two or three)."""
 
 
 @dataclass(frozen=True)
@@ -148,7 +165,9 @@ class BudgetedCalls:
     def __init__(self, space: ParameterSpace, evaluate_batch: Callable[[list], list[dict]],
                  budget: int, done: dict[int, dict] | None = None, method: str = "", *,
                  reuse: bool = True,
-                 precheck: Callable[[dict[str, float]], frozenset[str]] | None = None):
+                 precheck: Callable[[dict[str, float]], frozenset[str]] | None = None,
+                 objective: Objective | None = None,
+                 on_refine: Callable[[Objective], None] | None = None):
         self.space = space
         self.evaluate_batch = evaluate_batch
         self.budget = budget
@@ -160,6 +179,39 @@ class BudgetedCalls:
         self.reuse_limit = budget if reuse else 0
         self.precheck = precheck
         self._kinds: dict[tuple, frozenset[str]] = {}
+        self.objective = objective or Objective()
+        self.on_refine = on_refine
+        self._scheduled = 0  # refinement points of REFINE_AT passed
+
+    # ------------------------------------------------------------------ the objective
+    def best(self) -> dict | None:
+        """The best call so far under the current objective (None before a valid one)."""
+        return self.objective.best(self.records)
+
+    def refine_noise(self) -> bool:
+        """Refine the objective's noise from the best call so far; whether it changed (not
+        when nothing is estimated, the best call is the one it was refined from, or after
+        :data:`MAX_REFINEMENTS`)."""
+        best = self.best()
+        if (not self.objective.refinable or best is None
+                or self.objective.refinement >= MAX_REFINEMENTS
+                or best["index"] == self.objective.refined_from
+                or self.objective.simulated(best) is None):
+            return False
+        self.objective = self.objective.refined(best)
+        if self.on_refine is not None:
+            self.on_refine(self.objective)
+        return True
+
+    def refine_if_due(self) -> bool:
+        """Refine at each share of the budget in :data:`REFINE_AT` the calls have passed
+        since the last check; whether the noise changed."""
+        changed = False
+        while (self._scheduled < len(REFINE_AT)
+               and len(self.records) >= REFINE_AT[self._scheduled] * self.budget):
+            self._scheduled += 1
+            changed = self.refine_noise() or changed
+        return changed
 
     @property
     def left(self) -> int:

@@ -19,27 +19,19 @@ from collections.abc import Callable
 import numpy as np
 
 from hmcore.calibration.calls import BudgetedCalls, Job
-from hmcore.calibration.methods.base import Driver, Feedback, Proposal, Proposer
+from hmcore.calibration.methods.base import Driver, Proposal, Proposer
+from hmcore.calibration.objective import Objective, feedback_of
 from hmcore.model.parameters import ParameterSpace
 
-
-def feedback_of(record: dict) -> Feedback:
-    """Reward and observed E (E, or the penalty of a failed run) from an evaluation record."""
-    E = record.get("E")
-    scored = E is not None and math.isfinite(E)
-    e_obs = E if scored else record["penalty"]
-    worst = record.get("E_worst")
-    return Feedback(float(record["reward"]), float(e_obs), scored,
-                    float(record.get("penalty") or 0.0) if scored else 0.0,
-                    float(worst) if scored and worst is not None and math.isfinite(worst)
-                    else None)
+__all__ = ["best_record", "calibrate", "feedback_of"]
 
 
 def calibrate(proposer: Proposer | Driver, space: ParameterSpace,
               evaluate_batch: Callable[[list[Job]], list[dict]], budget: int, workers: int,
               done: dict[int, dict] | None = None, exploit_last: bool | None = None,
-              precheck: Callable[[dict[str, float]], frozenset[str]] | None = None
-              ) -> list[dict]:
+              precheck: Callable[[dict[str, float]], frozenset[str]] | None = None,
+              objective: Objective | None = None,
+              on_refine: Callable[[Objective], None] | None = None) -> list[dict]:
     """Run ``budget`` simulator calls, ``workers`` at a time; return every record in call order.
 
     Each record must carry ``reward``, ``E`` (NaN/None for failures) and ``penalty``. A
@@ -47,12 +39,16 @@ def calibrate(proposer: Proposer | Driver, space: ParameterSpace,
     its own loop over the same calls instead. ``precheck``: the kinds of physics check a
     point's parameter values break before any run
     (:class:`~hmcore.calibration.calls.PhysicsPrecheck`), for the methods that use it.
+    ``objective``: what the methods are told of each call (default: E, the record's reward);
+    its noise is refined during the campaign (:class:`~hmcore.calibration.calls.BudgetedCalls`),
+    ``on_refine`` hears each refined objective.
     """
     if budget < 1 or workers < 1:
         raise ValueError(f"budget >= 1 and workers >= 1 must hold, got budget={budget}, "
                          f"workers={workers}")
     calls = BudgetedCalls(space, evaluate_batch, budget, done, proposer.name,
-                          reuse=getattr(proposer, "reuses_points", True), precheck=precheck)
+                          reuse=getattr(proposer, "reuses_points", True), precheck=precheck,
+                          objective=objective, on_refine=on_refine)
     if isinstance(proposer, Driver):
         return proposer.drive(calls, workers)
     if exploit_last is None:  # the proposer says whether its recommendation is worth a call
@@ -73,12 +69,15 @@ def calibrate(proposer: Proposer | Driver, space: ParameterSpace,
         batch = calls.submit([p.action for p in proposals], [p.lane for p in proposals], phases)
         told = [Proposal(np.asarray(r["action"], np.float32), p.observation, p.lane, p.key)
                 for r, p in zip(batch, proposals)]
-        proposer.tell(told, [feedback_of(r) for r in batch])
+        proposer.tell(told, [calls.objective.feedback(r) for r in batch])
+        calls.refine_if_due()
     return calls.records
 
 
-def best_record(records: list[dict]) -> dict | None:
-    """The lowest-E record among COMPLETE ones (never INVALID or FAIL); None when none."""
-    ok = [r for r in records if r.get("status") == "COMPLETE" and r.get("E") is not None
-          and math.isfinite(r["E"])]
-    return min(ok, key=lambda r: r["E"]) if ok else None
+def best_record(records: list[dict], objective: str = "E") -> dict | None:
+    """The COMPLETE record (never INVALID or FAIL) of the lowest value of ``objective`` (the
+    record key: ``E``, or ``likelihood`` in a consolidated record, under the campaign's final
+    noise); None when none."""
+    ok = [r for r in records if r.get("status") == "COMPLETE" and r.get(objective) is not None
+          and math.isfinite(r[objective])]
+    return min(ok, key=lambda r: r[objective]) if ok else None

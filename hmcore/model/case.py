@@ -13,6 +13,7 @@ observed history is collected and raised together as one :class:`CaseError`::
     [misfit]                          # optional
     variant = "mean"                  # or "robust": mean + robust_lambda * worst well-response
     robust_lambda = 0.5
+    objective = "likelihood"          # or "E": what a campaign minimises and selects by
 
     [simulator]                       # optional
     backend = "opm"                   # or a command template: "flow {deck} --output-dir={run_dir}"
@@ -122,6 +123,7 @@ class CaseSection(_Strict):
 class MisfitSettings(_Strict):
     variant: Literal["mean", "robust"] = "mean"
     robust_lambda: float = Field(default=0.5, ge=0)
+    objective: Literal["likelihood", "E"] = "likelihood"  # see hmcore.calibration.objective
 
 
 class SimulatorSettings(_Strict):

@@ -73,11 +73,13 @@ class ObservationSet:
     @classmethod
     def from_observed(cls, observed: pd.DataFrame, history_end_days: float,
                       tolerance_days: float = 30.0, responses: pd.DataFrame | None = None,
-                      noise: NoiseSection | None = None, context: pd.DataFrame | None = None
-                      ) -> ObservationSet:
+                      noise: NoiseSection | None = None, context: pd.DataFrame | None = None,
+                      simulated: np.ndarray | None = None) -> ObservationSet:
         """See :meth:`from_case`; with ``responses`` the noise (sigma where neither the data
         nor ``noise`` give one, and rho unless stated) is estimated from the residual series
-        ``simulated - observed``. ``context``: observed rows (default ``observed``) whose
+        ``simulated - observed``. ``simulated``: instead of ``responses``, the simulated value
+        of every row in the order of the rows made from ``observed`` (what :meth:`simulated`
+        of such a set returns). ``context``: observed rows (default ``observed``) whose
         flowing flags and oil rates mark the runs of continuous signal."""
         df = observed.copy()
         if "sigma" not in df:
@@ -96,7 +98,12 @@ class ObservationSet:
         df["flowing"] = df.flowing.astype(bool)
         df["derived"] = df.derived.astype(bool)
         resid = None
-        if responses is not None:
+        if simulated is not None:
+            simulated = np.asarray(simulated, float)
+            if simulated.shape != (len(df),):
+                raise ValueError(f"{simulated.size} simulated values for {len(df)} rows")
+            resid = simulated - df.observed.to_numpy(float)
+        elif responses is not None:
             probe = cls(df.assign(in_vector=False), {}, float(tolerance_days),
                         float(history_end_days))
             resid = probe.simulated(responses) - df.observed.to_numpy(float)
@@ -116,6 +123,15 @@ class ObservationSet:
         (stated noise stays as stated)."""
         return ObservationSet.from_observed(observed, self.history_end_days,
                                             self.tolerance_days, responses, self.statement)
+
+    def refine_simulated(self, simulated: np.ndarray, observed: pd.DataFrame,
+                         context: pd.DataFrame | None = None) -> ObservationSet:
+        """:meth:`refine` from the simulated value of every row (:meth:`simulated` of a run):
+        what a campaign keeps of each call, so that the refined noise is a function of its
+        journal. ``observed`` must be the frame this set was made from."""
+        return ObservationSet.from_observed(observed, self.history_end_days,
+                                            self.tolerance_days, noise=self.statement,
+                                            context=context, simulated=simulated)
 
     def without_time_correlation(self) -> ObservationSet:
         """A copy that whitens by sigma only (rho = 0): plain weighted least squares."""

@@ -1,8 +1,8 @@
 """Ensemble smoother with multiple data assimilation (``iterative_ensemble_smoother.ESMDA``).
 
-The data are the noise-whitened residuals of the fitted history (the campaign stores them in
-each record; see :class:`hmcore.scoring.observations.ObservationSet`), so the observations are 0
-with unit covariance. An ensemble of N members drawn uniformly in [-1, 1]^d is updated
+The data are the residuals of the campaign's objective (version 2: the noise-whitened ones
+under the likelihood, E's own under E, :meth:`hmcore.calibration.objective.Objective.residuals`;
+version 1: always the whitened ones), so the observations are 0 with unit covariance. An ensemble of N members drawn uniformly in [-1, 1]^d is updated
 ``n_a`` times with the inflation factors ``alpha = n_a`` (equal), then the posterior is
 evaluated: ``N * (n_a + 1)`` calls, every member a call; the calls left by the rounding go to
 the posterior mean and then to members of the posterior redrawn from its mean and covariance.
@@ -18,7 +18,6 @@ from __future__ import annotations
 import numpy as np
 
 from hmcore.calibration.calls import BudgetedCalls, BudgetExhausted
-from hmcore.calibration.methods.lm import residuals_of
 
 MAX_ASSIMILATIONS = 4
 
@@ -51,7 +50,7 @@ class ESMDADriver:
         try:
             for _ in range(n_a):
                 X = np.clip(X, -1.0, 1.0)
-                res = [residuals_of(r) for r in calls.run(X.T, phase="ensemble")]
+                res = [calls.objective.residuals(r) for r in calls.run(X.T, phase="ensemble")]
                 ok = [k for k, r in enumerate(res) if r is not None]
                 if len(ok) < 2:  # nothing to learn from: draw the ensemble again
                     X = self.rng.uniform(-1.0, 1.0, (self.dim, n))

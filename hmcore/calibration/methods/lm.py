@@ -40,15 +40,24 @@ Calls are spent where they tell something (version 3):
   next descent starts from a uniform-random
   point (the first starts at the box's centre) that breaks no pre-simulation check (up to
   :data:`START_DRAWS` draws; the first draw when none passes).
+
+The residuals are the campaign's objective's (version 4,
+:meth:`hmcore.calibration.objective.Objective.residuals`): the whitened ones under the
+likelihood, E's own under E. Under the likelihood, the noise the residuals are whitened by is
+refined from the best call so far (:meth:`~hmcore.calibration.calls.BudgetedCalls.refine_noise`)
+at the end of each descent, and when the calls pass a share of the budget
+(:data:`~hmcore.calibration.calls.REFINE_AT`; the descent then ends). A descent that follows a
+refinement starts from the best call so far, whose record and finite-difference runs the
+campaign already has (no call spent on them), instead of from a random point: the fit goes on
+where it was, under the refined noise.
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from hmcore.calibration.calls import BudgetedCalls, BudgetExhausted
+from hmcore.calibration.objective import Objective
 from hmcore.calibration.registry import VERSIONS
 from hmcore.calibration.trust_region_reflective import STATUS, TrustRegionReflective
 
@@ -66,15 +75,9 @@ START_DRAWS = 20
 
 
 def residuals_of(record: dict) -> np.ndarray | None:
-    """The least-squares residuals of a record (None for a failed run)."""
-    r = record.get("residuals")
-    if r is None or record.get("status") == "FAIL":
-        return None
-    r = np.nan_to_num(np.asarray(r, float))
-    P, E = float(record.get("penalty") or 0.0), record.get("E")
-    if P > 0 and E is not None and math.isfinite(E) and E > 0:
-        return np.append(r, math.sqrt(P * float(r @ r) / E))
-    return np.append(r, 0.0)
+    """The least-squares residuals of a record under the E objective, from the record's own
+    ``residuals`` (None for a failed run): see :meth:`Objective.residuals`."""
+    return Objective().residuals(record)
 
 
 def broken_at(run: dict, base: dict | None) -> bool:
@@ -104,10 +107,14 @@ class LMDriver:
             except BudgetExhausted:
                 break
             ran = not solver.failed and solver.f is not None
+            refined = calls.refine_noise() or descent.refined
             self.descents.append({"x": solver.x.tolist() if ran else None,
                                   "cost": float(solver.cost) if ran else None,
-                                  "reason": descent.reason or solver.reason})
-            x0 = self._start(calls)
+                                  "reason": descent.reason or solver.reason,
+                                  "noise_refined": refined})
+            best = calls.best() if refined else None
+            x0 = (np.clip(np.asarray(best["action"], float), -1.0, 1.0) if best is not None
+                  else self._start(calls))
         return calls.records
 
     def _start(self, calls: BudgetedCalls) -> np.ndarray:
@@ -139,6 +146,18 @@ class Descent:
         self.base: dict[tuple, dict] = {}  # the record of each point asked
         self.columns: dict[tuple, dict[int, dict]] = {}  # speculative Jacobian runs at a point
         self.stalled = 0
+        self.refined = False  # the noise was refined during the descent (which then ended)
+
+    def residuals(self, record: dict) -> np.ndarray | None:
+        return self.calls.objective.residuals(record)
+
+    def _refined_now(self) -> bool:
+        """Whether the calls passed a share of the budget and the noise was refined: the
+        descent then ends (its sums of squares are of the noise before)."""
+        if self.calls.refine_if_due():
+            self.refined = True
+            self.reason = "the noise was refined from the best call so far"
+        return self.refined
 
     @staticmethod
     def key_of(x: np.ndarray) -> tuple:
@@ -155,6 +174,8 @@ class Descent:
                 return
             if solver.jacobian_asked:
                 self._jacobian(points)
+                if self._refined_now():
+                    return
                 continue
             (x,) = points
             starting = solver.f is None
@@ -162,13 +183,13 @@ class Descent:
                 self.reason = "a trial repeats a point the campaign has simulated"
                 return
             record = self._point(x)
-            r = residuals_of(record)
+            r = self.residuals(record)
             if r is None:
                 solver.tell([(None, record)])  # ends the descent
                 return
             before = solver.cost
             solver.tell([(r, None)])
-            if not starting and self._stalls(before):
+            if self._refined_now() or (not starting and self._stalls(before)):
                 return
 
     def _point(self, x: np.ndarray) -> dict:
@@ -203,7 +224,7 @@ class Descent:
                 if not (record.get("status") == "FAIL" and runs[k].get("status") != "FAIL"
                         and solver.reverse_fd(k) is not None):  # back: the first has residuals
                     runs[k] = record
-        solver.tell([(residuals_of(runs[k]), runs[k]) for k in range(self.dim)])
+        solver.tell([(self.residuals(runs[k]), runs[k]) for k in range(self.dim)])
 
     def _stalls(self, before: float) -> bool:
         """Whether the descent ends after a trial (``before``: the cost it started from): an
