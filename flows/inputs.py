@@ -61,3 +61,22 @@ def scalar_problems(loaded: Case) -> list[str]:
              "no scalar parameter for a calibration method to move (fix: add a scalar "
              "[[parameters]] table, e.g. kind = \"multiply\"; the fields are matched by the "
              "ensemble smoother, docs/ensembles.md)")]
+
+
+def ensemble_problems(loaded: Case) -> list[str]:
+    """An ensemble run (``hmflow ensemble``) matches field parameters: a case without one is
+    refused in one line, and so is a scalar multiplier of a keyword a field writes (the
+    member's values replace the keyword after every GRID edit, so the multiplier would
+    change nothing); [] when the case can run."""
+    if not loaded.fields:
+        return [(f"case {loaded.name} ({loaded.source}) has no field parameter for an ensemble "
+                 "to match (fix: add a [[parameters]] table with kind = \"field\", "
+                 "docs/ensembles.md; scalar parameters alone are calibrated by hmflow run, "
+                 "e.g. --agent esmda)")]
+    written = {k: f.name for f in loaded.fields for k in f.written}
+    return [(f"case {loaded.name} ({loaded.source}): parameter '{p.name}' multiplies "
+             f"{k}, which field '{written[k]}' sets in every member (fix: remove "
+             f"'{p.name}', or its keyword {k}; the field's prior mean is the multiplier)")
+            for p in loaded.space.parameters if p.kind == "multiply"
+            for k in (x.upper() for x in p.keywords) if k in written]
+

@@ -27,6 +27,7 @@ from hmcore.calibration.calls import Job
 from hmcore.model.case import Case
 from hmcore.scoring.evaluation import Evaluation, evaluate, simulator_for
 from hmcore.scoring.observations import ObservationSet
+from hmcore.simulation.simulator import Simulator
 from storage import RUNS, ArtifactStore, EvaluationJournal, to_jsonable
 from tasks.naming import simulate_run_name
 
@@ -82,12 +83,13 @@ def fresh_dir(path: Path) -> Path:
     return candidate
 
 
-def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: Path):
-    """Evaluate ``values`` in ``run_dir`` (an :class:`~hmcore.scoring.evaluation.Evaluation`); a
-    transient failure (killed by a signal) raises while Prefect still has retries left; a
-    timeout is not retried (a model that is too slow is as slow the second time).
-    Returns the evaluation and the attempt number."""
-    simulator = simulator_for(case)
+def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: Path,
+                                simulator: Simulator | None = None):
+    """Evaluate ``values`` in ``run_dir`` (an :class:`~hmcore.scoring.evaluation.Evaluation`)
+    with ``simulator`` (default: the case's); a transient failure (killed by a signal) raises
+    while Prefect still has retries left; a timeout is not retried (a model that is too slow
+    is as slow the second time). Returns the evaluation and the attempt number."""
+    simulator = simulator or simulator_for(case)
     ev = evaluate(case, values, run_dir, simulator)
     attempt = int(getattr(task_run, "run_count", 1) or 1)
     if ev.failure is not None and ev.failure.transient and attempt <= 2:
@@ -96,8 +98,8 @@ def evaluate_or_raise_transient(case: Case, values: dict[str, float], run_dir: P
 
 
 def observation_set(case: Case) -> ObservationSet:
-    """The case's measured rows with their noise level (built once per campaign): what the
-    whitened residual vector of each call is made from, for the methods that need it."""
+    """The case's measured rows with their noise level (built once per campaign): the rows
+    whose simulated values each call's record keeps."""
     return ObservationSet.from_case(case)
 
 
@@ -131,21 +133,25 @@ def responses_record(responses: pd.DataFrame) -> dict:
 
 def simulate_parameters(case: Case, job: Job, store_root: str, campaign: str, seed: int,
                         agent: str, observations=None,
-                        destination: Destination = CAMPAIGN) -> dict:
+                        destination: Destination = CAMPAIGN,
+                        simulator: Simulator | None = None) -> dict:
     """The keyword arguments of :func:`simulate`, for a task runner's ``submit``."""
     return {"case": case, "job": job, "store_root": store_root, "campaign": campaign,
             "seed": seed, "agent": agent, "observations": observations,
-            "destination": destination}
+            "destination": destination, "simulator": simulator}
 
 
 @task(name="simulate", cache_policy=NO_CACHE, retries=2, retry_delay_seconds=1,
       retry_condition_fn=retry_transient, task_run_name=simulate_run_name)
 def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, agent: str,
-             observations=None, destination: Destination = CAMPAIGN) -> dict:
+             observations=None, destination: Destination = CAMPAIGN,
+             simulator: Simulator | None = None) -> dict:
     """Evaluate ``job`` and journal the record (where: ``destination``); transient failures
-    raise to be retried. With ``observations`` (an ObservationSet) the record also holds
-    ``residuals``, the whitened residual vector of the fitted history (least-squares and
-    ensemble methods use it); with ``destination.responses``, ``responses``, the simulated
+    raise to be retried. ``simulator``: the case's own by default (an ensemble member's run
+    wraps it, :class:`hmcore.fields.members.MemberSimulator`). With ``observations`` (an ObservationSet) the record also holds
+    ``simulated``, the simulated value of every row of the set (NaN where no simulated time
+    is within the tolerance), from which the campaign's objective scores the call and
+    refines the noise (:mod:`hmcore.calibration.objective`); with ``destination.responses``, ``responses``, the simulated
     table (:func:`responses_record`). A call already journaled (its worker died after writing
     the record, and the cluster reran it) returns the journaled record: never simulated or
     recorded twice."""
@@ -155,10 +161,10 @@ def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, ag
     if journaled is not None:  # a rerun of a call whose worker died after journaling it
         return journaled
     run_dir = destination.run_dir(store, campaign, job)
-    ev, attempt = evaluate_or_raise_transient(case, job.values, run_dir)
+    ev, attempt = evaluate_or_raise_transient(case, job.values, run_dir, simulator)
     extra = {}
     if observations is not None and ev.responses is not None:
-        extra["residuals"] = observations.residual_vector(ev.responses, "fit").tolist()
+        extra["simulated"] = observations.simulated(ev.responses).tolist()
     if destination.responses and ev.responses is not None:
         extra["responses"] = responses_record(ev.responses)
     record = to_jsonable({"index": job.index, "lane": job.lane, "phase": job.phase,
