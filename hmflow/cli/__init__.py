@@ -4,6 +4,7 @@ what it returns; one module per command group:
 
 * :mod:`~hmflow.cli.case`: ``init``, ``check``, ``evaluate`` (hmcore alone)
 * :mod:`~hmflow.cli.campaign`: ``run``, ``report``, ``tables``
+* :mod:`~hmflow.cli.ensemble`: ``ensemble`` (ES-MDA on field parameters)
 * :mod:`~hmflow.cli.bench`: ``bench``; :mod:`~hmflow.cli.deploy`: ``deploy``
 * :mod:`~hmflow.cli.diagnose`: ``diagnose``
 * :mod:`~hmflow.cli.scenarios`: ``hide``, ``reveal``
@@ -18,7 +19,7 @@ from hmflow.cli.common import app, main
 # isort: off
 # each module registers its commands when imported: in this order, the order `hmflow --help`
 # lists them
-from hmflow.cli import case, campaign, bench, deploy, diagnose, scenarios  # noqa: F401
+from hmflow.cli import case, campaign, ensemble, bench, deploy, diagnose, scenarios  # noqa: F401
 # isort: on
 
 __all__ = ["app", "main"]

@@ -1,0 +1,127 @@
+"""``hmflow ensemble``: ES-MDA on a case's field parameters as a Prefect flow
+(:mod:`flows.ensemble`), with a progress bar of the member runs and, at the end, the forecast
+of the prior and the posterior and one summary line."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.progress import BarColumn, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from flows.inputs import ensemble_problems
+from hmflow.cli.common import (
+    DASK_HELP,
+    DEFAULT_STORAGE,
+    RUNNER_HELP,
+    VERBOSE_HELP,
+    app,
+    checked_campaign,
+    console,
+    fail,
+    folder,
+    load_case,
+    refuse,
+)
+from hmflow.cli.flowrun import check_inputs, fit_workers, flow_refused, start_api
+from hmflow.console import Watch, prefect_environment
+
+
+@app.command()
+def ensemble(case: str = typer.Option(..., "--case", help="Case TOML file with kind = "
+                                      "\"field\" parameters (and an ensemble section)"),
+             campaign: Optional[str] = typer.Option(None, "--campaign",
+                                                    callback=checked_campaign,
+                                                    help="Name in the store (default "
+                                                    "CASE-ensemble; the same name resumes)"),
+             workers: int = typer.Option(2, "--workers", min=1, help="Member runs at once"),
+             storage: Path = typer.Option(DEFAULT_STORAGE, "--storage", help="Artifact store"),
+             task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
+             dask_address: Optional[str] = typer.Option(None, "--dask-address",
+                                                        help=DASK_HELP),
+             verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
+    """Match the case's field parameters with ES-MDA (prior, updates, posterior) and print
+    the forecast of the prior and the posterior."""
+    prefect_environment(verbose)
+    # storage imports pandas: keeps `hmflow --help` fast
+    from storage import refuse_links
+
+    storage = folder("--storage", storage)
+    c = load_case(case)  # every problem before Prefect starts or anything runs
+    refuse(ensemble_problems(c))
+    workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
+    check_inputs(workers=workers, task_runner=task_runner)
+    start_api()
+    # Prefect: only after start_api (it reads its settings on import)
+    from flows.ensemble import default_ensemble_name, ensemble_flow
+
+    name = campaign or default_ensemble_name(c.name)
+    storage = storage.resolve()
+    try:
+        refuse_links(storage, name)
+    except ValueError as exc:
+        fail(str(exc))
+    spec = c.ensemble
+    rounds = len(spec.alphas) + 1
+    console.print(f"ensemble [bold]{name}[/]: case {c.name}, {spec.size} members, weights "
+                  f"{list(spec.weights)}, {len(c.fields)} field(s), workers {workers}, "
+                  f"storage {storage}")
+    columns = [TextColumn("[bold]member runs"), BarColumn(), TextColumn(
+        "{task.completed}/{task.total}"), TextColumn("ensemble {task.fields[round]}"),
+        TimeElapsedColumn()]
+    try:
+        with Watch(console, member_poll(storage, name, rounds, spec.size), columns,
+                   total=spec.size * rounds, initial={"round": "-"}):
+            result = ensemble_flow(case=str(case), workers=workers, storage=str(storage),
+                                   campaign=name, task_runner=task_runner,
+                                   dask_address=dask_address)
+    except (ValueError, flow_refused()) as exc:
+        fail(str(exc))
+    print_forecast(storage, name)
+    console.print(result["summary"], highlight=False, soft_wrap=True)
+
+
+def member_poll(storage: Path, campaign: str, rounds: int, size: int) -> Callable[[], dict]:
+    """Member runs journaled over every round, and the round running."""
+
+    def poll() -> dict:
+        # storage imports pandas: polled only once the flow runs
+        from storage import ArtifactStore, EvaluationJournal
+        from storage.ensemble import member_journal
+
+        store = ArtifactStore(storage)
+        counts = [len(EvaluationJournal(store, campaign, member_journal(i)).indices())
+                  for i in range(rounds)]
+        current = next((i for i, n in enumerate(counts) if n < size), rounds - 1)
+        label = "posterior" if current == rounds - 1 else f"{current}"
+        return {"completed": sum(counts), "round": label}
+
+    return poll
+
+
+def print_forecast(storage: Path, campaign: str) -> None:
+    """The stored forecast: P90/P50/P10 of each quantity, prior and posterior, and the data
+    misfit (mean square whitened residual) of each round of runs."""
+    # storage imports pandas: keeps `hmflow --help` fast
+    from storage import ArtifactStore
+    from storage.ensemble import FORECAST_STEP
+
+    version = ArtifactStore(storage).latest(campaign, FORECAST_STEP)
+    table = version.read_parquet("forecast.parquet")
+    doc = version.read_json("summary.json")
+    t = Table(title="Forecast at the schedule's end (P90 low, P10 high)")
+    for col in ("quantity", "ensemble", "members", "P90", "P50", "P10"):
+        t.add_column(col, justify="left" if col in ("quantity", "ensemble") else "right")
+    for row in table.sort_values(["well", "quantity"], kind="stable").itertuples():
+        t.add_row(row.label, row.ensemble, str(row.members),
+                  *(f"{getattr(row, p):.5g}" for p in ("P90", "P50", "P10")))
+    console.print(t)
+    for it in doc["iterations"]:
+        failed = (f", {it['failed']} failed {it['failed_by_kind']}" if it["failed"] else "")
+        misfit = it["misfit_median"]
+        console.print(f"ensemble {it['iteration']}: {it['ran']}/{it['planned']} members ran"
+                      f"{failed}; median misfit "
+                      + (f"{misfit:.4g}" if misfit is not None else "n/a"), highlight=False)
