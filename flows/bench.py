@@ -21,6 +21,7 @@ from storage import ArtifactStore, EvaluationJournal
 from tasks.bench import consolidate_bench
 from tasks.case import prepare_deck
 from tasks.reference import reference_settings, run_references
+from tasks.simulate import observation_set
 
 
 def bench_names(case_name: str, methods: list[str], seeds: list[int], name: str | None = None
@@ -37,15 +38,17 @@ def bench_names(case_name: str, methods: list[str], seeds: list[int], name: str 
 
 
 def same_settings(store_root: str | Path, campaign: str, method: str, seed: int,
-                  workers: int) -> bool | None:
-    """Whether a campaign of this benchmark was stored under this method, seed, workers and
-    scoring rules (None: no settings stored yet, the campaign has not started)."""
+                  workers: int, objective: str = "E") -> bool | None:
+    """Whether a campaign of this benchmark was stored under this method, seed, workers,
+    scoring rules and objective (None: no settings stored yet, the campaign has not
+    started)."""
     stored = ArtifactStore(store_root).settings(campaign)
     if stored is None:
         return None
     return (stored.get("agent"), stored.get("seed"), stored.get("workers"),
-            stored.get("scoring_version"), stored.get("method_version", 1)) == (
-        method, seed, workers, SCORING_VERSION, method_version(method))
+            stored.get("scoring_version"), stored.get("method_version", 1),
+            stored.get("objective", "E")) == (
+        method, seed, workers, SCORING_VERSION, method_version(method), objective)
 
 
 def same_bench(store_root: str | Path, bench: str, budget: int, workers: int) -> bool | None:
@@ -60,11 +63,11 @@ def same_bench(store_root: str | Path, bench: str, budget: int, workers: int) ->
 
 
 def complete(store: ArtifactStore, campaign: str, method: str, seed: int, budget: int,
-             workers: int) -> bool:
+             workers: int, objective: str = "E") -> bool:
     """A campaign of this benchmark with all its calls journaled, under the same method, seed,
     workers and scoring rules: nothing to run (its journal is read as it is). Anything else
     goes through the campaign flow, which resumes it or refuses other settings."""
-    return (same_settings(store.root, campaign, method, seed, workers) is True
+    return (same_settings(store.root, campaign, method, seed, workers, objective) is True
             and len(EvaluationJournal(store, campaign).indices()) >= budget)
 
 
@@ -98,10 +101,10 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
     check_campaign_settings(storage, bench, {"case_artifact": case_version.ref(),
                                              "budget": budget, "workers": workers})
     with make_runner(task_runner, workers, dask_address) as started:
-        run_references(loaded, storage, reference, started)
+        run_references(loaded, storage, reference, started, observation_set(loaded))
     store = ArtifactStore(storage)
     for campaign, (method, seed) in campaigns.items():
-        if complete(store, campaign, method, seed, budget, workers):
+        if complete(store, campaign, method, seed, budget, workers, loaded.misfit.objective):
             logger.info(f"benchmark {bench}: {method} seed {seed} complete ({campaign})")
             continue
         logger.info(f"benchmark {bench}: {method} seed {seed} ({campaign})")

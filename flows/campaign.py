@@ -16,6 +16,7 @@ from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from hmcore.calibration.calls import Job, PhysicsPrecheck
 from hmcore.calibration.loop import calibrate
+from hmcore.calibration.objective import Objective
 from hmcore.calibration.methods import make_proposer
 from hmcore.calibration.registry import (
     DEFAULT_AGENT,
@@ -28,6 +29,7 @@ from hmcore.scoring.evaluation import SCORING_VERSION
 from storage import ArtifactStore, EvaluationJournal, validate_name
 from tasks.case import deck_file_hashes, prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
+from tasks.noise import store_noise
 from tasks.reference import reference_name, reference_settings, run_references
 from tasks.results import archive_best, consolidate, report
 from tasks.simulate import observation_set, simulate, simulate_parameters
@@ -84,7 +86,8 @@ def fork_origin(store_root: str, campaign: str) -> dict:
             "deck_files": before.get("deck_files")}
 
 
-SETTINGS_BEFORE_THEY_WERE_STORED = {"scoring_version": 1, "method_version": 1}
+SETTINGS_BEFORE_THEY_WERE_STORED = {"scoring_version": 1, "method_version": 1,
+                                    "objective": "E"}
 """What a campaign.json written before a setting was stored means by its absence: scored by
 the first rules. A setting stored neither then nor now (``workers`` in older campaigns) is
 not compared."""
@@ -180,6 +183,7 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
             "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
             "agent_settings": agent_settings or {}, "workers": workers,
             "scoring_version": SCORING_VERSION, "method_version": method_version(agent),
+            "objective": loaded.misfit.objective,
             "reference": reference, "deck_files": deck_file_hashes(loaded),
             **({"forked_from": origin} if origin else {})})
         check_campaign_settings(storage, reference, reference_settings(case_version))
@@ -191,13 +195,21 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
         logger.info(f"resuming campaign {campaign}: {len(done)} calls already journaled")
     proposer = make_proposer(agent, loaded.space.dim, seed, workers, budget,
                              **(agent_settings or {}))
-    observations = (observation_set(loaded) if getattr(proposer, "needs_residuals", False)
-                    else None)
+    observations = observation_set(loaded)  # every record keeps its simulated rows
+    objective = Objective.of_case(loaded, observations)
+    final = [objective]  # the objective as the campaign ends (its noise refined)
+
+    def refined(better: Objective) -> None:
+        final[0] = better
+        store_noise(storage, campaign, better, case_version.ref())
+        logger.info(f"campaign {campaign}: noise refinement {better.refinement} from the "
+                    f"residuals of call {better.refined_from + 1}")
+
     progress = Progress(campaign, budget)
     progress.update([r for i, r in done.items() if i < budget])
 
     with make_runner(task_runner, workers, dask_address) as runner:
-        run_references(loaded, storage, reference, runner)
+        references = run_references(loaded, storage, reference, runner, observations)
 
         def evaluate_batch(jobs: list[Job]) -> list[dict]:
             futures = [runner.submit(simulate, simulate_parameters(
@@ -207,16 +219,17 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
             return records
 
         calibrate(proposer, loaded.space, evaluate_batch, budget, workers, done,
-                  precheck=PhysicsPrecheck.of(loaded))
-    results = consolidate(storage, campaign, loaded.space.names)
+                  precheck=PhysicsPrecheck.of(loaded), objective=objective, on_refine=refined)
+    results = consolidate(storage, campaign, loaded.space.names, final[0], references)
     best = archive_best(storage, campaign, results)
     collect_curves(storage, campaign, reference)
     rep = report(storage, campaign)
     summary = rep.read_json("report.json")
     best_doc = summary.get("best")
     logger.info(f"campaign {campaign}: " + (
-        f"best E {best_doc['E']:.6g} at call {best_doc['index'] + 1}" if best_doc
-        else "no valid call"))
+        f"best by {summary.get('objective', 'E')} at call {best_doc['index'] + 1}: E "
+        f"{best_doc['E']:.6g}, likelihood {best_doc.get('likelihood') or float('nan'):.6g}"
+        if best_doc else "no valid call"))
     return {"campaign": campaign, "storage": storage, "results": results.ref(),
             "best": best.ref() if best else None, "report": rep.ref(),
             "report_path": str(rep.file("report.md")),

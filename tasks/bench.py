@@ -31,13 +31,17 @@ def consolidate_bench(store_root: str, bench: str, campaigns: dict[str, tuple[st
                              f"({ref.get(i, {}).get('reason', 'not run')}): no benchmark "
                              "table without it; fix the case and rerun")
     floor, centre = float(ref[0]["E"]), float(ref[1]["E"])
-    frames = []
+    objective = objective_of(store, campaigns)
+    frames, floors = [], {}
     for name, (method, seed) in campaigns.items():
         rows = [r for r in EvaluationJournal(store, name).rows() if r["index"] < budget]
+        values, floors[(method, seed)] = objective_values(store, name, rows, objective,
+                                                          (floor, centre))
         frames.append(pd.DataFrame({
             "method": method, "seed": seed, "call": [r["index"] + 1 for r in rows],
             "status": [r["status"] for r in rows],
-            "E": [np.nan if r.get("E") is None else r["E"] for r in rows],
+            "E": values,
+            "E_paper": [np.nan if r.get("E") is None else r["E"] for r in rows],
             "penalty": [r.get("penalty") for r in rows],
             "phase": [r.get("phase") for r in rows],
             "wall_time_s": [r.get("wall_time_s") for r in rows],
@@ -45,15 +49,25 @@ def consolidate_bench(store_root: str, bench: str, campaigns: dict[str, tuple[st
             "finished_at": [r.get("finished_at", np.nan) for r in rows],
             "worst_well_cmatch": [worst_well_cmatch(r.get("metrics") or {}) for r in rows]}))
     calls = benchmark.best_so_far(pd.concat(frames, ignore_index=True))
-    runs = benchmark.per_run(calls, floor, centre, workers)
+    runs = pd.concat([benchmark.per_run(g, *floors[key], workers)
+                      for key, g in calls.groupby(["method", "seed"], sort=False)],
+                     ignore_index=True)
     table = benchmark.summary(runs)
     text = benchmark.markdown(table, floor, centre, case_name, truth_known)
+    if objective == "likelihood":
+        lows = [f for f, _ in floors.values()]
+        text = (f"Objective: the likelihood (chi2/n). The columns named E hold it; each "
+                f"campaign's floor is the truth's likelihood under the noise that campaign "
+                f"ended with (median {np.nanmedian(lows):.6g}); the floor E below is the "
+                "paper's E, for reference.\n\n" + text)
     with tempfile.TemporaryDirectory() as tmp:
         png = Path(tmp) / "best_so_far.png"
         benchmark.plot(calls, floor, png, f"{case_name}: best-so-far E vs simulator calls")
         files = {"calls.parquet": calls, "runs.parquet": runs, "summary.parquet": table,
                  "summary.md": text, "best_so_far.png": png.read_bytes(),
-                 "references.json": {"floor_E": floor, "centre_E": centre,
+                 "references.json": {"objective": objective, "floor_E": floor,
+                                     "centre_E": centre,
+                                     "floors": {f"{m}-s{s}": v for (m, s), v in floors.items()},
                                       "floor_values": ref[0]["params"],
                                       "centre_values": ref[1]["params"]}}
         journals = {name: int(((calls.method == m) & (calls.seed == s)).sum())
@@ -61,3 +75,26 @@ def consolidate_bench(store_root: str, bench: str, campaigns: dict[str, tuple[st
         return store.put_files(bench, "benchmark", {"campaigns": campaigns, "calls": journals,
                                                     "reference": reference, "budget": budget},
                                files, code_version())
+
+
+def objective_of(store: ArtifactStore, campaigns: dict[str, tuple[str, int]]) -> str:
+    """The objective the benchmark's campaigns chose by (their case's; E for campaigns
+    stored before the objective was)."""
+    stored = [(store.settings(name) or {}).get("objective", "E") for name in campaigns]
+    return stored[0] if stored else "E"
+
+
+def objective_values(store: ArtifactStore, campaign: str, rows: list[dict], objective: str,
+                     references: tuple[float, float]) -> tuple[list[float], tuple[float, float]]:
+    """Each call's value of ``objective`` and the (floor, centre) it is judged against: E and
+    the benchmark's references, or the likelihood under the noise the campaign ended with
+    and its references scored by it (its latest results)."""
+    if objective == "E":
+        return [np.nan if r.get("E") is None else r["E"] for r in rows], references
+    results = store.latest(campaign, "results")
+    doc = results.read_json("records.json") if results is not None else {}
+    value = {r["index"]: r.get("likelihood") for r in doc.get("records", [])}
+    refs = doc.get("references") or {}
+    pair = tuple(float((refs.get(k) or {}).get("likelihood") or np.nan)
+                 for k in ("floor", "centre"))
+    return [np.nan if value.get(r["index"]) is None else value[r["index"]] for r in rows], pair

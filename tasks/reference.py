@@ -40,14 +40,17 @@ def reference_settings(case_version: ArtifactVersion) -> dict:
             "agent_settings": {}, "scoring_version": SCORING_VERSION}
 
 
-def run_references(case: Case, storage: str, reference: str, runner) -> dict[int, dict]:
+def run_references(case: Case, storage: str, reference: str, runner,
+                   observations=None) -> dict[int, dict]:
     """Simulate, on the started task ``runner``, the reference calls not yet journaled under
     ``reference`` (a campaign of its own, bound by the flow to :func:`reference_settings`)
-    and return both records by index."""
+    and return both records by index. With ``observations`` a record keeps the simulated
+    value of every row, so that the campaign's objective scores it (a reference journaled
+    before records kept them has no likelihood)."""
     journal = EvaluationJournal(ArtifactStore(storage), reference)
     done = {r["index"] for r in journal.rows()}
     futures = [runner.submit(simulate, simulate_parameters(case, job, storage, reference, 0,
-                                                           REFERENCE_AGENT))
+                                                           REFERENCE_AGENT, observations))
                for job in reference_jobs(case) if job.index not in done]
     for f in futures:
         f.result()

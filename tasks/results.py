@@ -11,40 +11,64 @@ from prefect.artifacts import create_link_artifact, create_markdown_artifact, cr
 from prefect.cache_policies import NO_CACHE
 
 from hmcore.calibration.loop import best_record
+from hmcore.calibration.objective import Objective
 from hmcore.diagnosis.report import markdown_report
 from hmcore.model.case import default_history_end
 from hmcore.reporting.benchmark import case_truth
 from hmcore.reporting.html import ReportInputs, render
 from hmcore.reporting.paper_tables import paper_tables
-from hmcore.reporting.report import build_report, to_jsonable
+from hmcore.reporting.report import Choice, build_report, to_jsonable
 from hmcore.reporting.results import results_table
 from hmcore.scoring.observations import ObservationSet
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version, sha256_json
 from tasks.curves import collect
 from tasks.naming import artifact_key
+from tasks.noise import latest_noise
 from tasks.reference import CENTRE, FLOOR, reference_name
 
 SUMMARY_SUFFIXES = (".SMSPEC", ".UNSMRY", ".DATA", ".LOG", ".PRT", ".INIT", ".EGRID")
 
 
 @task(name="consolidate-results", cache_policy=NO_CACHE)
-def consolidate(store_root: str, campaign: str, parameter_names: list[str]) -> ArtifactVersion:
-    """Every journaled evaluation -> ``results/vN/evaluations.parquet`` (+ records JSON)."""
+def consolidate(store_root: str, campaign: str, parameter_names: list[str],
+                objective: Objective | None = None,
+                references: dict[int, dict] | None = None) -> ArtifactVersion:
+    """Every journaled evaluation -> ``results/vN/evaluations.parquet`` (+ records JSON).
+
+    With the campaign's final ``objective`` every record gains ``likelihood`` (under the
+    noise the campaign ended with; NaN without simulated values) and ``records.json`` says
+    which objective chooses (``objective``); ``references`` (the reference runs' records by
+    index) are scored the same way (``references``: floor and centre, E and likelihood)."""
     store = ArtifactStore(store_root)
     rows = EvaluationJournal(store, campaign).rows()
-    table = results_table(rows, parameter_names)
+    name = objective.name if objective is not None else "E"
+    if objective is not None and objective.observations is not None:
+        rows = [{**r, "likelihood": objective.likelihood(r)} for r in rows]
+    scored_refs = {label: {"E": rec.get("E"), "likelihood": (
+        objective.likelihood(rec) if objective is not None and objective.observations
+        is not None else None)} for label, rec in (
+        ("floor", (references or {}).get(FLOOR)), ("centre", (references or {}).get(CENTRE)))
+        if rec is not None}
+    table = results_table(rows, parameter_names, name)
+    noise = objective.describe() if objective is not None else None
     return store.put_files(campaign, "results", {"journal": sha256_json(rows),
-                                                 "parameters": parameter_names},
-                           {"evaluations.parquet": table, "records.json": {"records": rows}},
+                                                 "parameters": parameter_names,
+                                                 "objective": name, "noise": noise},
+                           {"evaluations.parquet": table,
+                            "records.json": {"records": rows, "objective": name,
+                                             "noise": noise, "references": scored_refs}},
                            code_version())
 
 
 @task(name="archive-best-case", cache_policy=NO_CACHE)
 def archive_best(store_root: str, campaign: str, results: ArtifactVersion) -> ArtifactVersion | None:
-    """Copy the best valid run (deck, summary files, parameters, metrics) into ``best/vN``."""
+    """Copy the best valid run by the campaign's objective (deck, summary files, parameters,
+    metrics) into ``best/vN``."""
     store = ArtifactStore(store_root)
-    records = results.read_json("records.json")["records"]
-    best = best_record(records)
+    doc = results.read_json("records.json")
+    records = doc["records"]
+    objective = doc.get("objective", "E")
+    best = best_record(records, objective)
     if best is None:
         return None
     run_dir = Path(best["run_dir"])
@@ -54,10 +78,12 @@ def archive_best(store_root: str, campaign: str, results: ArtifactVersion) -> Ar
             if f.is_file() and (f.suffix.upper() in SUMMARY_SUFFIXES or f.name == "simulator.log"):
                 shutil.copy2(f, directory / f.name)
         (directory / "params.json").write_text(json.dumps(best["params"], indent=2))
-        (directory / "metrics.json").write_text(json.dumps(to_jsonable(best), indent=2))
+        kept = {k: v for k, v in best.items() if k != "simulated"}
+        (directory / "metrics.json").write_text(json.dumps(to_jsonable(
+            {**kept, "objective": objective}), indent=2))
 
-    return store.put(campaign, "best", {"results": results.ref(), "index": best["index"]}, write,
-                     code_version())
+    return store.put(campaign, "best", {"results": results.ref(), "index": best["index"],
+                                        "objective": objective}, write, code_version())
 
 
 @task(name="build-report", cache_policy=NO_CACHE)
@@ -79,10 +105,16 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     best_doc = best.read_json("metrics.json") if best else None
     diagnosis_doc = diagnosis.read_json("diagnosis.json") if diagnosis is not None else None
     truth = _truth_for(case_doc)
-    noise = case.read_parquet("noise.parquet") if "noise.parquet" in case.files else None
+    refined = latest_noise(store, campaign)
+    noise_from = refined if refined is not None else case
+    noise = (noise_from.read_parquet("noise.parquet") if "noise.parquet" in noise_from.files
+             else None)
+    scores = results.read_json("records.json") if results is not None else {}
     markdown, doc = build_report(campaign, case_doc, table, best_doc, truth, diagnosis_doc,
-                                 noise)
+                                 noise, Choice(scores.get("objective", "E"),
+                                               scores.get("noise"), scores.get("references")))
     inputs = {"results": results.ref() if results is not None else None, "case": case.ref(),
+              "noise": refined.ref() if refined is not None else None,
               "report_version": REPORT_VERSION,
               "best": best.ref() if best else None}
     if diagnosis is not None:

@@ -7,6 +7,7 @@ Nothing here runs a simulator; everything is rebuilt from stored metrics.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -65,24 +66,66 @@ def parameter_distance(found: dict[str, float], truth: dict[str, float],
     return out
 
 
+OBJECTIVE_WORDS = {
+    "likelihood": "the likelihood (chi2/n: the mean square of the noise-whitened residuals of "
+                  "the fitted history; 1 fits within the noise)",
+    "E": "E (the paper's misfit)"}
+
+
+@dataclass(frozen=True)
+class Choice:
+    """What chose the best call: the campaign's ``objective`` (``likelihood`` or ``E``), the
+    noise it ended with (``noise``: which refinement, from which call) and the reference runs
+    scored by it (``references``: floor and centre, each E and likelihood)."""
+
+    objective: str = "E"
+    noise: dict | None = None
+    references: dict | None = field(default=None)
+
+
+def choice_markdown(best: dict, choice: Choice) -> list[str]:
+    """The best call's two numbers side by side, saying which chose it, with the floor's."""
+    lines = [f"Chosen by {OBJECTIVE_WORDS.get(choice.objective, choice.objective)}.", "",
+             "| | likelihood (chi2/n) | E |", "|---|---|---|"]
+    mark = {"likelihood": ("**", ""), "E": ("", "**")}.get(choice.objective, ("", ""))
+
+    def row(label: str, doc: dict) -> str:
+        lk, e = (_fmt(float(v), 6) if v is not None else "n/a"
+                 for v in (doc.get("likelihood"), doc.get("E")))
+        return f"| {label} | {mark[0]}{lk}{mark[0]} | {mark[1]}{e}{mark[1]} |"
+
+    lines.append(row(f"best (call {best['index'] + 1})", best))
+    for label, doc in (choice.references or {}).items():
+        lines.append(row({"floor": "truth / deck values", "centre": "prior centre"}.get(
+            label, label), doc))
+    noise = choice.noise or {}
+    if noise.get("refinement"):
+        lines += ["", f"The likelihood is under the noise refined {noise['refinement']} time(s) "
+                  f"from the fit's residuals, last from call {noise['refined_from_call'] + 1}."]
+    return lines + [""]
+
+
 def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best: dict | None,
                  truth: dict[str, float] | None,
                  diagnosis: dict | None = None,
-                 noise: pd.DataFrame | None = None) -> tuple[str, dict]:
+                 noise: pd.DataFrame | None = None,
+                 choice: Choice | None = None) -> tuple[str, dict]:
     """Markdown report and its JSON twin from stored results (no simulator involved).
 
     ``table``: the consolidated evaluations (None: the campaign ran no calibration, e.g. a
     diagnosis alone); ``diagnosis``: the campaign's latest ``diagnosis.json``, appended as a
     section (its plots are linked by file name, stored beside the report); ``noise``: the
     noise the fit assumed (:func:`hmcore.scoring.noise_table.noise_summary`, stored with the
-    campaign's case), a section of its own."""
+    campaign's case, or its latest refinement), a section of its own; ``choice``: what chose
+    the best call (default: E, as campaigns did before the objective)."""
+    choice = choice or Choice()
     if table is None:
         markdown = "\n".join([f"# hmflow campaign `{campaign}`", "",
                                f"Case **{case_doc['name']}** ({case_doc['source']}); no "
                                "calibration campaign was run under this name.", ""]) + "\n"
         doc: dict = {"campaign": campaign, "case": case_doc["name"], "calls": 0, "best": None}
     else:
-        markdown, doc = _campaign_report(campaign, case_doc, table, best, truth)
+        markdown, doc = _campaign_report(campaign, case_doc, table, best, truth, choice)
     if noise is not None and not noise.empty:
         markdown += "\n" + noise_markdown(noise)
         doc["noise"] = to_jsonable(noise.to_dict(orient="records"))
@@ -97,14 +140,15 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
 
 
 def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: dict | None,
-                     truth: dict[str, float] | None) -> tuple[str, dict]:
+                     truth: dict[str, float] | None, choice: Choice) -> tuple[str, dict]:
     n = len(table)
     counts = table["status"].value_counts().to_dict() if n else {}
     lines = [f"# hmflow campaign `{campaign}`", "",
              f"Case **{case_doc['name']}** ({case_doc['source']}); {n} simulator calls: "
              + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) + ".", ""]
     doc: dict = {"campaign": campaign, "case": case_doc["name"], "calls": n,
-                 "status_counts": counts, "best": None}
+                 "status_counts": counts, "best": None, "objective": choice.objective,
+                 "noise_refined": choice.noise, "references": choice.references}
     fails = table[table["status"] == "FAIL"]
     if not fails.empty:
         reasons = fails["failure"].fillna("unknown").value_counts().to_dict()
@@ -123,10 +167,14 @@ def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: d
         lines += ["No valid simulation: nothing can be called best."]
         return "\n".join(lines) + "\n", to_jsonable(doc)
     params = best["params"]
-    lines += [f"## Best case: call {best['index'] + 1} of {n} (E = {_fmt(best['E'], 6)})", "",
-              "| parameter | value |", "|---|---|"]
+    key = choice.objective if choice.objective in best else "E"
+    lines += [f"## Best case: call {best['index'] + 1} of {n} ({key} = "
+              f"{_fmt(best[key], 6)})", ""]
+    lines += choice_markdown(best, choice)
+    lines += ["| parameter | value |", "|---|---|"]
     lines += [f"| {k} | {_fmt(v)} |" for k, v in params.items()]
     doc["best"] = {"index": best["index"], "E": best["E"], "params": params,
+                   "likelihood": best.get("likelihood"), "chosen_by": choice.objective,
                    "E_heldout": best.get("E_heldout"), "macro": best["metrics"].get("macro")}
     if truth:
         bounds = {p["name"]: (p["low"], p["high"]) for p in case_doc["parameters"]}

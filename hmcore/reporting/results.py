@@ -7,15 +7,19 @@ import pandas as pd
 from hmcore.scoring.misfit import PRIMARY
 from hmcore.scoring.record_format import upgrade
 
-COLUMNS = ["index", "phase", "lane", "status", "failure", "reason", "E", "penalty", "reward", "coverage",
+COLUMNS = ["index", "phase", "lane", "status", "failure", "reason", "E", "likelihood", "penalty",
+           "reward", "coverage",
            "E_heldout", "wall_time_s", "sim_time_s", "run_dir", "seed", "agent", "attempts"]
 
 
 
-def results_table(records: list[dict], parameter_names: list[str]) -> pd.DataFrame:
-    """Columns: COLUMNS, ``p_<name>`` (physical values), ``a_<name>`` (actions in [-1, 1]),
+def results_table(records: list[dict], parameter_names: list[str], objective: str = "E"
+                  ) -> pd.DataFrame:
+    """Columns: COLUMNS (``likelihood``: the campaign's final noise's, when consolidated with
+    it), ``p_<name>`` (physical values), ``a_<name>`` (actions in [-1, 1]),
     ``loss_<category>`` (per-response misfit), ``violation_kinds`` (the physics checks a penalised
-    call broke, comma-separated), ``macro_nmse/r2/cmatch`` and ``best_E_so_far``."""
+    call broke, comma-separated), ``macro_nmse/r2/cmatch``, ``best_E_so_far`` and
+    ``best_objective_so_far`` (the running best of ``objective``, the column that chooses)."""
     rows = []
     for r in sorted((upgrade(r) for r in records), key=lambda r: r["index"]):
         row = {c: r.get(c) for c in COLUMNS}
@@ -36,6 +40,7 @@ def results_table(records: list[dict], parameter_names: list[str]) -> pd.DataFra
                        "violation_kinds"):
             df[col] = pd.to_numeric(df[col], errors="coerce")
     df["best_E_so_far"] = running_best(df["E"], df["status"])
+    df["best_objective_so_far"] = running_best(df[objective], df["status"])
     return df
 
 
