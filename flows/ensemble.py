@@ -29,7 +29,6 @@ from flows.refuse import USER_ERRORS, input_problems, refused
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from hmcore.cases import load_case
-from hmcore.fields.smoother import TooFewRealizations
 from storage import ArtifactStore
 from tasks.case import deck_file_hashes, prepare_deck
 from tasks.ensemble import (
@@ -108,13 +107,12 @@ def ensemble_flow(case: str = "synthetic", workers: Annotated[int, Field(ge=1)] 
                 progress.update([f.result()])
             if i == iterations:
                 break
-            try:
-                ensemble = update_step(loaded, setup, ensemble,
-                                       member_records(storage, campaign, i), i, storage,
-                                       campaign)
-            except TooFewRealizations as exc:
-                return stopped(str(exc))
-    forecast = forecast_step(loaded, storage, campaign, iterations, planned)
+            ensemble = update_step(loaded, setup, ensemble, member_records(storage, campaign, i),
+                                   i, storage, campaign)
+            if isinstance(ensemble, str):  # too few members ran: the reason, in one line
+                return stopped(ensemble)
+    forecast = forecast_step(loaded, setup.observations, storage, campaign, iterations,
+                             planned)
     doc = forecast.read_json("summary.json")
     line = (f"ensemble {campaign}: {loaded.ensemble.size} members, {iterations} "
             f"assimilation(s), {doc['runs']} runs ({doc['failed']} failed); "

@@ -34,7 +34,7 @@ from hmcore.fields.forecast import ensemble_forecast, headline, member_values
 from hmcore.fields.grid import FieldGrid, read_grid
 from hmcore.fields.layout import Layout
 from hmcore.fields.members import MemberSimulator, ensemble_matrix, ensemble_table
-from hmcore.fields.smoother import Observations
+from hmcore.fields.smoother import Observations, TooFewRealizations
 from hmcore.model.case import Case
 from hmcore.scoring.evaluation import SCORING_VERSION, simulator_for
 from hmcore.scoring.observations import ObservationSet
@@ -161,16 +161,37 @@ def member_records(storage: str, campaign: str, iteration: int) -> dict[int, dic
     return {r["index"]: r for r in journal.rows()}
 
 
+def with_residuals(records: dict[int, dict], observations: ObservationSet) -> dict[int, dict]:
+    """The records with ``residuals``: the whitened residual vector of the fitted history
+    (:meth:`~hmcore.scoring.observations.ObservationSet.whiten`) from the simulated value of
+    every row a record keeps (``simulated``); None for a failed run."""
+    observed = observations.rows.observed.to_numpy(float)
+    sigma = observations.rows.sigma.to_numpy(float)
+    out = {}
+    for m, r in records.items():
+        sim = r.get("simulated")
+        residuals = None
+        if r.get("status") != "FAIL" and sim is not None and len(sim) == len(observed):
+            values = np.array([np.nan if v is None else v for v in sim], float)
+            residuals = observations.whiten((values - observed) / sigma, "fit").tolist()
+        out[m] = {**r, "residuals": residuals}
+    return out
+
+
 @task(name="update", cache_policy=NO_CACHE)
 def update_step(case: Case, setup: EnsembleSetup, ensemble: ArtifactVersion,
                 records: dict[int, dict], iteration: int, storage: str,
-                campaign: str) -> ArtifactVersion:
+                campaign: str) -> ArtifactVersion | str:
     """ES-MDA update ``iteration`` (0-based) of ``ensemble`` with its members' ``records``,
-    stored as ``ensemble-<iteration + 1>``; TooFewRealizations (nothing stored) below the
-    ensemble's ``min_realizations``. The same ensemble and records give the same update, so
+    stored as ``ensemble-<iteration + 1>``; below the ensemble's ``min_realizations``, nothing
+    stored and the reason returned (one line: :class:`TooFewRealizations`'s). The same ensemble and records give the same update, so
     a resumed run reuses the stored version."""
     X = ensemble_matrix(ensemble.read_parquet(ENSEMBLE_FILE), setup.layout)
-    result = update(X, records, setup.data, iteration, case.ensemble, setup.locations)
+    records = with_residuals(records, setup.observations)
+    try:
+        result = update(X, records, setup.data, iteration, case.ensemble, setup.locations)
+    except TooFewRealizations as exc:  # the flow's one line, not a failed task's traceback
+        return str(exc)
     data = {str(m): {k: r.get(k) for k in ("status", "residuals")} for m, r in records.items()}
     inputs = {"previous": ensemble.ref(), "iteration": iteration,
               "ensemble": case.ensemble.model_dump(mode="json"), "records": sha256_json(data)}
@@ -189,14 +210,15 @@ def update_step(case: Case, setup: EnsembleSetup, ensemble: ArtifactVersion,
 
 
 @task(name="forecast", cache_policy=NO_CACHE)
-def forecast_step(case: Case, storage: str, campaign: str, iterations: int,
-                  planned: dict[int, list[int]]) -> ArtifactVersion:
+def forecast_step(case: Case, observations: ObservationSet, storage: str, campaign: str,
+                  iterations: int, planned: dict[int, list[int]]) -> ArtifactVersion:
     """The forecast of the prior (the runs of ``ensemble-00``) and the posterior (the runs of
     ``ensemble-<iterations>``) and the summary of every round of runs (``planned``: the
     members each round was to run)."""
     wells = sorted(case.info.wells)
     store = ArtifactStore(storage)
     rounds = {i: member_records(storage, campaign, i) for i in range(iterations + 1)}
+    scored = {i: with_residuals(r, observations) for i, r in rounds.items()}
     curves, skipped = {}, {}
     for name, i in (("prior", 0), ("posterior", iterations)):
         curves[name] = {}
@@ -211,7 +233,7 @@ def forecast_step(case: Case, storage: str, campaign: str, iterations: int,
     table = ensemble_forecast(curves, wells)
     updates = [store.latest(campaign, ensemble_step(i)).read_json(ENSEMBLE_DOC)
                for i in range(1, iterations + 1)]
-    doc = {"iterations": [iteration_summary(i, planned[i], rounds[i])
+    doc = {"iterations": [iteration_summary(i, planned[i], scored[i])
                           for i in range(iterations + 1)],
            "updates": [{k: u.get(k) for k in ("iteration", "alpha", "left_out_now",
                                               "update_seconds", "batches")} for u in updates],
