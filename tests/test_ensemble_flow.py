@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 from conftest import cli_env
 
+from hmcore.cases import load_case
 from hmcore.fields.grdecl import read_grdecl
 from hmcore.fields.grid import read_grid
 from hmcore.fields.layout import Layout
 from hmcore.fields.members import INCLUDE_NAME, ensemble_matrix
 from hmcore.fields.transform import to_physical
-from hmcore.cases import load_case
 from storage import ArtifactStore, EvaluationJournal
 from storage.ensemble import ENSEMBLE_FILE, FORECAST_STEP, ensemble_step, member_journal
 
@@ -101,7 +101,7 @@ def test_every_ensemble_is_stored_as_float32_members_by_parameters(run):
     assert all(table[f"m{m:04d}"].dtype == np.float32 for m in range(SIZE))
     doc = prior.read_json("ensemble.json")
     assert doc["seeds"] == {"poro": 11, "permx": 12} and doc["members"] == SIZE
-    X0, X1, X2 = ensembles(run)
+    X0 = ensembles(run)[0]
     assert np.isfinite(X0).all()
     # log10 permeability from porosity by the stated relation, within its scatter
     resid = X0[:, 500:] - (-0.9 + 12.6 * X0[:, :500])
@@ -192,7 +192,8 @@ def test_too_few_members_left_stops_the_iteration_with_one_line(tmp_path, small_
                            "size = 4\nweights = [1.0]\nmin_realizations = 2\n")
     done = subprocess.run([sys.executable, "-m", "hmflow.cli", "ensemble", "--case", str(case),
                            "--storage", str(tmp_path / "store"), "--workers", "2"],
-                          capture_output=True, text=True, timeout=300, env=cli_env(prefect_api))
+                          capture_output=True, text=True, timeout=300, env=cli_env(prefect_api),
+                          check=False)
     out = " ".join((done.stdout + done.stderr).split())
     assert done.returncode != 0, out[-2000:]
     assert ("ES-MDA assimilation 1 of 1: 1 of 4 members have results (3 failed now, 0 left "
