@@ -13,8 +13,13 @@ draws), :mod:`~hmcore.fields.prior` (drawn priors), :mod:`~hmcore.fields.grdecl`
 INCLUDE file, GRDECL read back), :mod:`~hmcore.fields.realisations` (the user's GRDECL priors),
 :mod:`~hmcore.fields.localisation` (distance tapers), :mod:`~hmcore.fields.layout` (fields and
 scalars side by side in the smoother's matrix), :mod:`~hmcore.fields.smoother` (the batched
-ES-MDA update, ask/tell).
+ES-MDA update, ask/tell), :mod:`~hmcore.fields.members` (an ensemble as a table of one column
+per member; a member's run: its INCLUDE at the end of GRID, around the caller's simulator),
+:mod:`~hmcore.fields.assimilation` (one ES-MDA run step by step: the prior, the data as the
+smoother sees them, the update from the members' records), :mod:`~hmcore.fields.forecast`
+(P90/P50/P10 of the prior and the posterior).
 
-Free of Prefect, storage and the simulator; nothing is imported here, so that reading a case
-file (``spec``) does not load opm.io, gstools or the smoother.
+Free of Prefect and storage; it never starts a simulator (``members.MemberSimulator`` wraps
+the one its caller gives). Nothing is imported here, so that reading a case file (``spec``)
+does not load opm.io, gstools or the smoother.
 """
