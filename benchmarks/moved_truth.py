@@ -53,7 +53,7 @@ from make_bench_cases import draw_valid_truth  # noqa: E402
 from hmcore.eclipse.deck_info import DeckInfo  # noqa: E402
 from hmcore.model.parameters import ParameterSpace  # noqa: E402
 from hmcore.model.run_deck import prepare_run_deck  # noqa: E402
-from hmcore.simulation.opm_runner import OpmFlow  # noqa: E402
+from hmcore.simulation.simulator import OpmFlow  # noqa: E402
 from hmcore.simulation.responses import read_responses  # noqa: E402
 
 DECK = REPO.parent / "shared/punqs3/PUNQS3.DATA"

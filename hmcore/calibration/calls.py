@@ -22,7 +22,8 @@ deck's cells, :class:`PhysicsPrecheck`) a method may ask through :meth:`Budgeted
 The calls hold the campaign's :class:`~hmcore.calibration.objective.Objective` (what a method
 is told of a call, and which call is best) and refine its noise from the residuals of the best
 call so far (:meth:`BudgetedCalls.refine_noise`): when a method asks (``lm`` at the end of a
-descent) and when the calls made pass :data:`REFINE_AT` of the budget, at most
+descent) and when the calls made pass :data:`REFINE_AT` of the budget (after the batch
+that passes it, whatever the method), at most
 :data:`MAX_REFINEMENTS` times, each time from another best call. Resuming stays exact: the
 decision and the noise are functions of the records in call order, which a resumed campaign
 replays identically.
@@ -258,12 +259,15 @@ class BudgetedCalls:
     def submit(self, actions, lanes: list[int] | None, phases: list[str]) -> list[dict]:
         """The records of ``actions`` (each row a call's action as given; the loop's proposals
         are not clipped here), a point already simulated answered by its record (no call),
-        the others evaluated together; :class:`BudgetExhausted` as :meth:`run`."""
+        the others evaluated together; :class:`BudgetExhausted` as :meth:`run`. The noise is
+        refined when the calls have passed a share of :data:`REFINE_AT` (a method sees it as
+        a new :attr:`objective`)."""
         plan = self._plan(actions, lanes, phases)
         batch = replay_or_evaluate(plan.jobs, self.done, self.evaluate_batch, self.method)
         for job, record in zip(plan.jobs, batch):
             self.points.add(job.values, record)
         self.records.extend(batch)
+        self.refine_if_due()
         if plan.short:
             raise BudgetExhausted(f"{self.budget} calls spent")
         return [batch[row] if isinstance(row, int) else row for row in plan.rows]

@@ -70,7 +70,6 @@ def calibrate(proposer: Proposer | Driver, space: ParameterSpace,
         told = [Proposal(np.asarray(r["action"], np.float32), p.observation, p.lane, p.key)
                 for r, p in zip(batch, proposals)]
         proposer.tell(told, [calls.objective.feedback(r) for r in batch])
-        calls.refine_if_due()
     return calls.records
 
 

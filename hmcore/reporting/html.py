@@ -187,8 +187,11 @@ def _best_card(inputs: ReportInputs) -> dict | None:
     if b is None:
         return None
     macro = b.get("metrics", {}).get("macro", {})
+    lk = b.get("likelihood")
     return {"E": f"{b['E']:.6g}", "call": b["index"] + 1, "nmse": _fmt(macro.get("nmse")),
-            "r2": _fmt(macro.get("r2")), "cmatch": _fmt(macro.get("cmatch"), 2)}
+            "r2": _fmt(macro.get("r2")), "cmatch": _fmt(macro.get("cmatch"), 2),
+            "likelihood": f"{lk:.6g}" if lk is not None and math.isfinite(lk) else None,
+            "chosen": b.get("objective", "E")}
 
 
 def _floor_label(inputs: ReportInputs) -> str | None:

@@ -197,12 +197,17 @@ def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: d
         doc["heldout_category_table"] = to_jsonable(
             category_table(best["heldout_metrics"]).to_dict(orient="records"))
     if n:
-        trace = table[["index", "best_E_so_far"]].dropna()
+        both = choice.objective != "E" and "best_objective_so_far" in table
+        trace = table[["index", "best_E_so_far"]
+                      + (["best_objective_so_far"] if both else [])].dropna()
         marks = sorted({max(1, n // 4), max(1, n // 2), max(1, 3 * n // 4), n})
-        lines += ["### Convergence", "", "| calls | best E so far |", "|---|---|"]
+        lines += ["### Convergence", "", "| calls | best E so far |"
+                  + (f" best {choice.objective} so far (chooses) |" if both else ""),
+                  "|---|---|" + ("---|" if both else "")]
         for m in marks:
             sub = trace[trace["index"] < m]
-            lines.append(f"| {m} | {_fmt(sub['best_E_so_far'].iloc[-1], 6) if len(sub) else 'n/a'} |")
+            cells = [_fmt(sub[c].iloc[-1], 6) if len(sub) else "n/a" for c in trace.columns[1:]]
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
         doc["time"] = {"sim_time_s_total": float(table["sim_time_s"].sum()),
                        "wall_time_s_total": float(table["wall_time_s"].sum())}
     return "\n".join(lines) + "\n", to_jsonable(doc)

@@ -124,7 +124,11 @@ def print_report(storage: Path, campaign: str, result: dict | None = None) -> No
         if doc["calls"]:
             console.print("[red]no valid simulation - nothing to call best[/]")
     else:
-        console.print(f"best call {best['index'] + 1} (calls numbered from 1): E = {best['E']:.6g}"
+        chosen = best.get("chosen_by", "E")
+        lk = best.get("likelihood")
+        console.print(f"best call {best['index'] + 1} (calls numbered from 1), chosen by "
+                      f"{chosen}: E = {best['E']:.6g}"
+                      + (f", likelihood (chi2/n) = {lk:.6g}" if lk is not None else "")
                       + (f", held-back E = {best['E_heldout']:.6g}" if best.get("E_heldout") else ""))
         for k, v in best["params"].items():
             console.print(f"  {k:<12} = {v:.4f}")

@@ -146,15 +146,16 @@ class Descent:
         self.base: dict[tuple, dict] = {}  # the record of each point asked
         self.columns: dict[tuple, dict[int, dict]] = {}  # speculative Jacobian runs at a point
         self.stalled = 0
+        self.objective = calls.objective  # the one its sums of squares are under
         self.refined = False  # the noise was refined during the descent (which then ended)
 
     def residuals(self, record: dict) -> np.ndarray | None:
         return self.calls.objective.residuals(record)
 
     def _refined_now(self) -> bool:
-        """Whether the calls passed a share of the budget and the noise was refined: the
-        descent then ends (its sums of squares are of the noise before)."""
-        if self.calls.refine_if_due():
+        """Whether the calls refined the noise (passing a share of the budget) since the
+        descent began: the descent then ends (its sums of squares are of the noise before)."""
+        if self.calls.objective is not self.objective:
             self.refined = True
             self.reason = "the noise was refined from the best call so far"
         return self.refined
