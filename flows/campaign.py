@@ -69,8 +69,11 @@ def check_campaign_settings(store_root: str, campaign: str, settings: dict) -> N
                              f"case: {'; '.join(case_changes)}. Set the stored values in the "
                              "case file to resume it, or choose another --campaign name")
         if diff:
+            hint = (f"; or set [misfit] objective = \"{diff['objective'][0]}\" in the case "
+                    "file to resume it" if "objective" in diff else "")
             raise ValueError(f"campaign '{campaign}' in {store_root} was started with other "
-                             f"settings {diff} (stored, given); choose another --campaign name")
+                             f"settings {diff} (stored, given); choose another --campaign name"
+                             + hint)
         return
     store.bind_settings(campaign, settings)
 

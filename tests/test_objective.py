@@ -192,3 +192,37 @@ def test_a_stated_or_given_noise_is_never_refined():
     calls = BudgetedCalls(SPACE, evaluator(objective), 4, objective=objective)
     calls.run(np.zeros((2, 2)) + [[0.0, 0.0], [0.2, 0.1]])
     assert not calls.refine_noise() and calls.objective is objective
+
+
+# ----------------------------------------------------------------------------- campaign and report
+def test_a_campaign_chosen_by_E_before_the_objective_existed_resumes_only_under_E(tmp_path):
+    from flows.campaign import check_campaign_settings
+
+    settings = {"agent": "cmaes", "seed": 0, "workers": 2}
+    ArtifactStore(tmp_path).bind_settings("old", settings)  # stored without an objective
+    check_campaign_settings(str(tmp_path), "old", {**settings, "objective": "E"})
+    with pytest.raises(ValueError, match='objective = "E"'):
+        check_campaign_settings(str(tmp_path), "old", {**settings, "objective": "likelihood"})
+
+
+def test_the_report_shows_both_numbers_and_says_which_chose():
+    from hmcore.reporting.report import Choice, build_report
+
+    table = pd.DataFrame({"index": [0, 1], "status": ["COMPLETE"] * 2, "E": [0.02, 0.01],
+                          "likelihood": [1.5, 2.5], "best_E_so_far": [0.02, 0.01],
+                          "best_objective_so_far": [1.5, 1.5], "sim_time_s": [1.0, 1.0],
+                          "wall_time_s": [1.0, 1.0], "failure": [None, None]})
+    best = {"index": 0, "E": 0.02, "likelihood": 1.5, "params": {"a": 1.0},
+            "metrics": {"macro": {"nmse": 0.1, "r2": 0.5, "cmatch": 90.0}, "categories": {},
+                        "wells": {}, "excluded": {}}}
+    refs = {"floor": {"E": 0.009, "likelihood": 1.1}, "centre": {"E": 0.05, "likelihood": 9.0}}
+    text, doc = build_report("c", {"name": "x", "source": "x.toml", "parameters": []}, table,
+                             best, None, choice=Choice("likelihood", {"refinement": 2,
+                                                                      "refined_from_call": 0},
+                                                       refs))
+    assert "## Best case: call 1 of 2 (likelihood = 1.500000)" in text
+    assert "Chosen by the likelihood" in text
+    assert "| best (call 1) | **1.500000** | 0.020000 |" in text
+    assert "| truth / deck values | **1.100000** | 0.009000 |" in text
+    assert "refined 2 time(s)" in text and "best likelihood so far (chooses)" in text
+    assert doc["best"]["chosen_by"] == "likelihood" and doc["objective"] == "likelihood"

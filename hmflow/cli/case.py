@@ -85,7 +85,8 @@ def check(case: str = typer.Option("synthetic", "--case", help=CASE_HELP)) -> No
     console.print(f"  history   {c.observed_path}: {int((~obs.derived).sum())} measured rows "
                   f"{measured}" + (f", derived {derived}" if derived else ""))
     console.print(f"  fitting   days <= {c.history_end_days if c.history_end_days else 'end'}, "
-                  f"tolerance {c.time_tolerance_days:g} d, misfit {c.misfit.variant}")
+                  f"tolerance {c.time_tolerance_days:g} d, misfit {c.misfit.variant}, "
+                  f"objective {c.misfit.objective} (what a campaign minimises and selects by)")
     console.print(f"  units     {c.info.unit_system}: " + ", ".join(
         f"{q} {deck_unit(q, c.info.unit_system)}" for q in sorted(set(obs.quantity))))
     if "controlled" in obs and obs.controlled.any():
