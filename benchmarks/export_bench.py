@@ -6,8 +6,10 @@
 Writes ``OUT/<name>/``: the files of the latest ``<name>/benchmark/vNNNN`` (summary.md,
 summary.parquet, runs.parquet, calls.parquet, best_so_far.png, references.json) and
 ``journals.tar.gz``: ``campaign.json`` and every ``evaluations/*.json`` of the benchmark, its
-reference campaign and every campaign of the table, without the residual vectors (large, and
-rebuilt by rescoring), and the case artifact the benchmark is bound to (its reference
+reference campaign and every campaign of the table (without the residual vectors of older
+records: large, and rebuilt by rescoring; with the simulated rows of newer ones, which the
+likelihood is scored from), each campaign's noise refinements (``noise/``: the likelihood of
+its calls is under the last), and the case artifact the benchmark is bound to (its reference
 campaign's ``case/vNNNN``, which a resumed benchmark compares the case with). Unpacked into a
 store (``tar -xzf ... -C hmflow-storage``), the same ``hmflow bench`` command continues the
 benchmark on another machine.
@@ -59,6 +61,8 @@ def main() -> None:
                 info.size = len(blob)
                 info.mtime = int(f.stat().st_mtime)
                 tar.addfile(info, io.BytesIO(blob))
+            if (root / "noise").is_dir():  # the refinements its likelihood is under
+                tar.add(root / "noise", arcname=f"{campaign}/noise")
         bound = json.loads((args.storage / args.name / "campaign.json").read_text())
         ref = bound["case_artifact"]
         case_dir = args.storage / ref["campaign"] / ref["step"] / f"v{int(ref['version']):04d}"

@@ -112,7 +112,7 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
                storage=storage, campaign=campaign, reference=reference,
                task_runner=task_runner, dask_address=dask_address)
     version = consolidate_bench(storage, bench, campaigns, reference, loaded.name, budget,
-                                case_truth(loaded.source) is not None, workers)
+                                case_truth(loaded.source) is not None, workers, loaded)
     return {"benchmark": bench, "storage": storage, "artifact": version.ref(),
             "summary_path": str(version.file("summary.md")),
             "plot_path": str(version.file("best_so_far.png"))}

@@ -13,16 +13,19 @@ from prefect.cache_policies import NO_CACHE
 
 from hmcore.reporting import benchmark
 from hmcore.scoring.metrics import worst_well_cmatch
+from hmcore.calibration.objective import Objective
 from storage import ArtifactStore, EvaluationJournal, code_version
+from tasks.noise import NOISE_STEP
 
 
 @task(name="consolidate-benchmark", cache_policy=NO_CACHE)
 def consolidate_bench(store_root: str, bench: str, campaigns: dict[str, tuple[str, int]],
                       reference: str, case_name: str, budget: int, truth_known: bool,
-                      workers: int = 1):
+                      workers: int = 1, case=None):
     """``campaigns``: campaign name -> (method, seed). Writes ``calls.parquet`` (one row per
     call), ``runs.parquet`` (one per method x seed), ``summary.parquet``, ``summary.md`` and
-    ``best_so_far.png`` as a version of ``<bench>/benchmark``."""
+    ``best_so_far.png`` as a version of ``<bench>/benchmark``. ``case`` (the loaded case):
+    campaigns chosen by the likelihood are judged by it (:func:`objective_values`)."""
     store = ArtifactStore(store_root)
     ref = {r["index"]: r for r in EvaluationJournal(store, reference).rows()}
     for i, what in ((0, "floor (the truth's values or the deck's own)"), (1, "prior centre")):
@@ -36,7 +39,7 @@ def consolidate_bench(store_root: str, bench: str, campaigns: dict[str, tuple[st
     for name, (method, seed) in campaigns.items():
         rows = [r for r in EvaluationJournal(store, name).rows() if r["index"] < budget]
         values, floors[(method, seed)] = objective_values(store, name, rows, objective,
-                                                          (floor, centre))
+                                                          (floor, centre), case, ref)
         frames.append(pd.DataFrame({
             "method": method, "seed": seed, "call": [r["index"] + 1 for r in rows],
             "status": [r["status"] for r in rows],
@@ -84,17 +87,35 @@ def objective_of(store: ArtifactStore, campaigns: dict[str, tuple[str, int]]) ->
     return stored[0] if stored else "E"
 
 
+def final_objective(store: ArtifactStore, campaign: str, case, journal: dict[int, dict]
+                    ) -> Objective:
+    """The objective a campaign ended with, rebuilt from its journal: the case's, refined in
+    turn from the call each of its stored noise refinements names (``noise/v*/noise.json``;
+    the latest version of each refinement). A function of the journal and that chain only, so
+    a benchmark unpacked on another machine (``export_bench.py`` carries both) scores alike."""
+    objective = Objective.of_case(case)
+    chain: dict[int, int] = {}
+    for version in store.versions(campaign, NOISE_STEP):
+        doc = version.read_json("noise.json")
+        chain[int(doc["refinement"])] = int(doc["refined_from_call"])
+    for k in sorted(chain):
+        record = journal.get(chain[k])
+        if record is None or not objective.refinable or objective.simulated(record) is None:
+            break
+        objective = objective.refined(record)
+    return objective
+
+
 def objective_values(store: ArtifactStore, campaign: str, rows: list[dict], objective: str,
-                     references: tuple[float, float]) -> tuple[list[float], tuple[float, float]]:
+                     references: tuple[float, float], case=None,
+                     reference_records: dict[int, dict] | None = None
+                     ) -> tuple[list[float], tuple[float, float]]:
     """Each call's value of ``objective`` and the (floor, centre) it is judged against: E and
     the benchmark's references, or the likelihood under the noise the campaign ended with
-    and its references scored by it (its latest results)."""
-    if objective == "E":
+    (:func:`final_objective`) and the references scored by it."""
+    if objective == "E" or case is None:
         return [np.nan if r.get("E") is None else r["E"] for r in rows], references
-    results = store.latest(campaign, "results")
-    doc = results.read_json("records.json") if results is not None else {}
-    value = {r["index"]: r.get("likelihood") for r in doc.get("records", [])}
-    refs = doc.get("references") or {}
-    pair = tuple(float((refs.get(k) or {}).get("likelihood") or np.nan)
-                 for k in ("floor", "centre"))
-    return [np.nan if value.get(r["index"]) is None else value[r["index"]] for r in rows], pair
+    final = final_objective(store, campaign, case, {r["index"]: r for r in rows})
+    refs = reference_records or {}
+    pair = tuple(final.likelihood(refs[i]) if i in refs else np.nan for i in (0, 1))
+    return [final.likelihood(r) for r in rows], pair

@@ -85,7 +85,9 @@ def test_parquet_has_one_row_per_call_including_failures(campaign):
         assert col in table.columns
     assert (failed["reward"] < ok["reward"].min()).all()  # failures are penalised
     best = store.latest(campaign["name"], "best").read_json("metrics.json")
-    assert best["status"] == "COMPLETE" and best["E"] == pytest.approx(valid["E"].min())
+    key = best["objective"]  # the case's objective chooses: the likelihood by default
+    assert key == "likelihood" and valid[key].notna().all()
+    assert best["status"] == "COMPLETE" and best[key] == pytest.approx(valid[key].min())
 
 
 def test_archived_best_case_resimulates_to_the_same_metrics(campaign, tmp_path):
