@@ -22,6 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from prefect_processes import serve_prefect
 
 PUNQ_DIR = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
 PUNQ_DECK = PUNQ_DIR / "PUNQS3.DATA"
@@ -273,6 +274,17 @@ def prefect_api(tmp_path_factory) -> Iterator[str]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+
+
+@pytest.fixture(scope="session")
+def prefect_server(tmp_path_factory) -> Iterator[dict]:
+    """The session's one real `prefect server start` with its services and web UI (SQLite, a
+    temporary PREFECT_HOME, a free loopback port), for the tests of the server itself: its
+    scheduler and workers (test_deployments, test_prefect_server) and its UI in a browser
+    (test_ui_browser); each uses its own work pool, deployments and run names. Yields its API
+    URL, UI URL, home, env, root and log (:func:`prefect_processes.serve_prefect`)."""
+    with serve_prefect(tmp_path_factory.mktemp("prefect-server"), ui=True) as server:
+        yield server
 
 
 def cli_env(api_url: str, **extra: str) -> dict[str, str]:

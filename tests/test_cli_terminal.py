@@ -50,9 +50,11 @@ def restore_env(monkeypatch):
 
 # ------------------------------------------------------------------ real OPM, real Prefect
 @pytest.mark.opm
-def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_path, small_case):
+def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_path, small_case,
+                                                                        prefect_api):
     """What the terminal shows of `hmflow run` with its own temporary Prefect server (the
-    small synthetic case, conftest.small_case: the printing is tested, not the case)."""
+    small synthetic case, conftest.small_case: the printing is tested, not the case); resumed
+    with --verbose on a configured server (the session's, conftest.prefect_api)."""
     common = ("run", "--case", str(small_case), "--agent", "random", "--seed", "3",
               "--workers", "1", "--storage", str(tmp_path / "store"))
     quiet = hmflow(*common, "--budget", "2", cwd=tmp_path, env=clean_env())
@@ -79,7 +81,8 @@ def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_pat
 
     # --verbose: the same campaign resumed to 3 calls, Prefect's INFO lines shown - printed by
     # the bar's own console, so that no log line is written into the bar
-    loud = hmflow(*common, "--budget", "3", "--verbose", cwd=tmp_path, env=clean_env())
+    loud = hmflow(*common, "--budget", "3", "--verbose", cwd=tmp_path,
+                  env={**clean_env(), "PREFECT_API_URL": prefect_api})
     text = loud.stdout + loud.stderr
     assert loud.returncode == 0, text
     assert INFO_LINE.search(text) and "Beginning flow run" in text, text

@@ -1,5 +1,5 @@
 """The scheduled campaign deployment for real: a `prefect server start` (SQLite, temporary
-PREFECT_HOME, free loopback port), a process work pool, the deployments of
+PREFECT_HOME, free loopback port: the session's, conftest.prefect_server), a process work pool, the deployments of
 ``deployments/campaign.py``, a `prefect worker start` subprocess and real OPM Flow runs.
 
 The campaign (the small synthetic case of conftest.small_case, random agent, budget 4, 2 at
@@ -10,23 +10,18 @@ Server, worker and every process they started are stopped in the fixtures' teard
 
 from __future__ import annotations
 
-import contextlib
 
 import datetime as dt
 import json
-import os
-import signal
-import socket
 import subprocess
 import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
+from prefect_processes import PREFECT, serve_worker, tail
 
 REPO = Path(__file__).resolve().parents[1]
-PREFECT = Path(sys.executable).with_name("prefect")
 POOL = "hmflow-test-process"
 NAME = "it-nightly"
 CAMPAIGN = "deploy-it"
@@ -37,107 +32,6 @@ pytestmark = [
     pytest.mark.opm,
     pytest.mark.skipif(not PREFECT.is_file(), reason=f"prefect CLI not found at {PREFECT}"),
 ]
-
-
-# --------------------------------------------------------------------------------------------
-# processes
-# --------------------------------------------------------------------------------------------
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _isolated_env(home: Path, api_url: str, **extra: str) -> dict[str, str]:
-    """This environment without any PREFECT_* variable, plus a temporary PREFECT_HOME (its own
-    profiles and database) and our server's API URL."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
-    env.update({"PREFECT_HOME": str(home), "PREFECT_API_URL": api_url,
-                "PREFECT_SERVER_ANALYTICS_ENABLED": "false", **extra})
-    return env
-
-
-def _start(cmd: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
-    out = open(log, "wb")
-    try:
-        return subprocess.Popen(cmd, env=env, cwd=str(log.parent), stdin=subprocess.DEVNULL,
-                                stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
-    finally:
-        out.close()  # the child keeps its own descriptor
-
-
-def _stop(proc: subprocess.Popen, grace_s: float = 15.0) -> None:
-    """SIGTERM the process and everything it started (by pid, collected first), then SIGKILL
-    whatever is still alive after ``grace_s``."""
-    import psutil
-
-    try:
-        family = [psutil.Process(proc.pid)]
-        family += family[0].children(recursive=True)
-    except psutil.NoSuchProcess:
-        family = []
-    for p in family:
-        try:
-            p.send_signal(signal.SIGTERM)
-        except psutil.NoSuchProcess:
-            pass
-    _, alive = psutil.wait_procs(family, timeout=grace_s)
-    for p in alive:
-        try:
-            p.kill()
-        except psutil.NoSuchProcess:
-            pass
-    psutil.wait_procs(alive, timeout=5)
-    try:
-        proc.wait(timeout=5)
-    except subprocess.TimeoutExpired:  # pragma: no cover - killed above
-        pass
-
-
-def _tail(path: Path, n: int = 4000) -> str:
-    try:
-        return path.read_text(errors="replace")[-n:]
-    except OSError:
-        return "(no log)"
-
-
-@contextlib.contextmanager
-def serve_prefect(root: Path, ui: bool = False):
-    """A real `prefect server start` on a free loopback port with a temporary PREFECT_HOME under
-    ``root`` (with its web UI when ``ui``); yields its API URL, home, env, root and log."""
-    home = root / "home"
-    home.mkdir()
-    port = _free_port()
-    api = f"http://127.0.0.1:{port}/api"
-    env = _isolated_env(home, api)
-    log = root / "server.log"
-    cmd = [str(PREFECT), "server", "start", "--host", "127.0.0.1", "--port", str(port)]
-    proc = _start(cmd + ([] if ui else ["--no-ui"]), env, log)
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            if proc.poll() is not None:
-                pytest.fail(f"prefect server exited with {proc.returncode}:\n{_tail(log)}")
-            try:
-                with urllib.request.urlopen(f"{api}/health", timeout=2) as r:
-                    if r.status == 200 and json.loads(r.read()) is True:
-                        break
-            except OSError:
-                pass
-            if time.monotonic() > deadline:
-                pytest.fail(f"prefect server not healthy after 120 s:\n{_tail(log)}")
-            time.sleep(0.5)
-        yield {"api": api, "ui": api[: -len("/api")], "home": home, "env": env, "root": root,
-               "log": log}
-    finally:
-        _stop(proc)
-
-
-@pytest.fixture(scope="module")
-def prefect_server(tmp_path_factory):
-    """A real `prefect server start` (no UI) for the tests of this module."""
-    with serve_prefect(tmp_path_factory.mktemp("prefect-server")) as server:
-        yield server
 
 
 @pytest.fixture(scope="module")
@@ -175,20 +69,6 @@ def deployed(api_settings, tmp_path_factory, small_case):
             "campaign_id": campaign_id, "report_id": report_id}
 
 
-@contextlib.contextmanager
-def serve_worker(server: dict, pool: str, name: str):
-    """A real `prefect worker start --pool POOL` subprocess (polling every 2 s), stopped before
-    the server fixture stops the server: a worker without its server keeps retrying."""
-    log = server["root"] / f"{name}.log"
-    env = dict(server["env"], PREFECT_WORKER_QUERY_SECONDS="2")
-    proc = _start([str(PREFECT), "worker", "start", "--pool", pool, "--name", name,
-                   "--limit", "1"], env, log)
-    try:
-        yield {"proc": proc, "log": log}
-    finally:
-        _stop(proc)
-
-
 @pytest.fixture(scope="module")
 def worker(prefect_server, deployed):
     with serve_worker(prefect_server, POOL, "hmflow-it-worker") as w:
@@ -201,13 +81,13 @@ def worker(prefect_server, deployed):
 def _run(deployment: str, worker: dict, timeout: int = RUN_TIMEOUT_S):
     from prefect.deployments import run_deployment
 
-    assert worker["proc"].poll() is None, f"worker exited:\n{_tail(worker['log'])}"
+    assert worker["proc"].poll() is None, f"worker exited:\n{tail(worker['log'])}"
     t0 = time.monotonic()
     flow_run = run_deployment(deployment, timeout=timeout, poll_interval=2)
     elapsed = time.monotonic() - t0
     assert flow_run.state is not None and flow_run.state.is_completed(), (
         f"{deployment}: flow run {flow_run.id} is {flow_run.state} after {elapsed:.0f} s "
-        f"(limit {timeout} s)\nworker log:\n{_tail(worker['log'])}")
+        f"(limit {timeout} s)\nworker log:\n{tail(worker['log'])}")
     return flow_run
 
 
@@ -305,7 +185,7 @@ def test_scheduled_campaign_deployment_runs_on_a_process_worker(deployed, worker
     assert store.latest(CAMPAIGN, "report").read_json("report.json")["calls"] == BUDGET
     keys = {a.key for a in _artifacts_of(report_run.id)}
     assert {f"{CAMPAIGN}-report", f"{CAMPAIGN}-categories", f"{CAMPAIGN}-wells"} <= keys, keys
-    assert "Traceback" not in _tail(worker["log"], 100_000)
+    assert "Traceback" not in tail(worker["log"], 100_000)
 
 
 @pytest.mark.timeout(120)

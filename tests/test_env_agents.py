@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -11,7 +12,8 @@ from hmcore.calibration.methods import Feedback, RandomProposer, SACProposer, SA
 from hmcore.calibration.calls import Job
 from hmcore.calibration.loop import best_record, calibrate
 from hmcore.calibration.methods.env import HistoryMatchingEnv
-from hmcore.scoring.evaluation import Evaluation, Status
+from hmcore.cases import load_case
+from hmcore.scoring.evaluation import Evaluation, Status, evaluate
 from hmcore.model.parameters import ParameterSpace
 
 SPACE = ParameterSpace.reference()
@@ -36,6 +38,23 @@ def test_env_passes_gymnasium_and_sb3_checkers():
 
     gym_check(HistoryMatchingEnv(SPACE, fake_evaluate), skip_render_check=True)
     sb3_check(HistoryMatchingEnv(SPACE, fake_evaluate), warn=True)
+
+
+@pytest.mark.opm
+def test_gymnasium_check_env_passes_with_the_real_opm_evaluator(small_case, tmp_path):
+    """The paper's environment with the real simulator behind every step (the small synthetic
+    case, conftest.small_case: the same five global parameters as PUNQ-S3's, a fraction of its
+    run time)."""
+    from gymnasium.utils.env_checker import check_env
+
+    case = load_case(small_case)
+    runs = itertools.count()
+
+    def run(values):
+        return evaluate(case, values, tmp_path / f"run{next(runs)}")
+
+    check_env(HistoryMatchingEnv(case.space, run), skip_render_check=True)
+    assert next(runs) >= 2  # it stepped the real simulator (twice with the same action at least)
 
 
 def test_env_step_maps_action_to_bounds_and_reports_info():

@@ -7,8 +7,8 @@ every cycle ("Can't evaluate bulk DML statement"), so a scheduled deployment get
 fastapi 0.151 and later (0.154 was installed) the server answers `prefect flow-run ls` with
 422 Unprocessable Entity (it refuses the nulls the CLI sends).
 
-The server is the `prefect_server` fixture of test_deployments.py (a `prefect server start` on
-SQLite with a temporary PREFECT_HOME; its default scheduler settings are enough here: the
+The server is the session's (conftest.prefect_server: a `prefect server start` on SQLite with a
+temporary PREFECT_HOME; its default scheduler settings are enough here: the
 "recent deployments" scheduler visits a new deployment within 5 s). The deployed flow is a tiny
 flow written under tmp_path, so no simulation runs. Server and worker are stopped in teardown.
 """
@@ -16,14 +16,12 @@ flow written under tmp_path, so no simulation runs. Server and worker are stoppe
 from __future__ import annotations
 
 import subprocess
-import sys
 import time
-from pathlib import Path
 
 import pytest
 
-from test_deployments import (PREFECT, _tail, serve_worker,  # noqa: F401 (fixtures)
-                              api_settings, prefect_server)
+from prefect_processes import PREFECT, serve_worker, tail
+from test_deployments import api_settings  # noqa: F401 (a fixture)
 
 POOL = "hmflow-sched-test"
 FLOW_NAME = "hmflow-sched-probe"
@@ -91,7 +89,7 @@ def _diagnostics(prefect_server, worker) -> str:
     server_log = prefect_server["log"].read_text(errors="replace").splitlines()
     errors = [ln for ln in server_log if "Error" in ln or "Exception" in ln][-15:]
     return ("server log error lines:\n" + "\n".join(errors) + "\n\nworker log tail:\n"
-            + _tail(worker["log"], 3000))
+            + tail(worker["log"], 3000))
 
 
 _observed: dict = {}
@@ -112,7 +110,7 @@ def test_scheduler_creates_runs_that_a_process_worker_completes(prefect_server,
     deadline = time.monotonic() + WAIT_S
     first = None
     while first is None:
-        assert worker["proc"].poll() is None, f"worker exited:\n{_tail(worker['log'])}"
+        assert worker["proc"].poll() is None, f"worker exited:\n{tail(worker['log'])}"
         runs = _runs_of(dep_id)
         if runs:
             first = runs[0]
@@ -131,7 +129,7 @@ def test_scheduler_creates_runs_that_a_process_worker_completes(prefect_server,
             run = client.read_flow_run(first.id)
         if run.state is not None and run.state.is_final():
             break
-        assert worker["proc"].poll() is None, f"worker exited:\n{_tail(worker['log'])}"
+        assert worker["proc"].poll() is None, f"worker exited:\n{tail(worker['log'])}"
         if time.monotonic() > deadline:
             pytest.fail(f"scheduled run {run.name} is {run.state} after {WAIT_S} s\n"
                         f"{_diagnostics(prefect_server, worker)}")

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import pytest
 
-from test_deployments import serve_prefect  # a real `prefect server start`, here with its UI
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CAMPAIGN = "ui-check"
@@ -45,27 +44,27 @@ def render_showing(url: str, needles: list[str], tries: int = 3) -> str:
 
 
 @pytest.fixture(scope="module")
-def finished_campaign(tmp_path_factory, small_case):
+def finished_campaign(tmp_path_factory, small_case, prefect_server):
     """A 3-call campaign on the small synthetic case (conftest.small_case), run by `hmflow run`
-    against a real `prefect server start` with its UI."""
+    against a real `prefect server start` with its UI (the session's, conftest.prefect_server)."""
     root = tmp_path_factory.mktemp("ui")
-    with serve_prefect(root, ui=True) as server:
-        run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case",
-                              str(small_case), "--budget", str(BUDGET),
-                              "--agent", "random", "--seed", "1", "--campaign", CAMPAIGN,
-                              "--storage", str(root / "store")], cwd=root, env=server["env"],
-                             capture_output=True, text=True, timeout=600)
-        assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
-        from prefect.client.orchestration import get_client
-        from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterName
-        from prefect.settings import PREFECT_API_URL, temporary_settings
+    server = prefect_server
+    run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case",
+                          str(small_case), "--budget", str(BUDGET),
+                          "--agent", "random", "--seed", "1", "--campaign", CAMPAIGN,
+                          "--storage", str(root / "store")], cwd=root, env=server["env"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterName
+    from prefect.settings import PREFECT_API_URL, temporary_settings
 
-        with temporary_settings(updates={PREFECT_API_URL: server["api"]}):
-            with get_client(sync_client=True) as client:
-                runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(
-                    name=FlowRunFilterName(like_=CAMPAIGN)), limit=5)
-        assert len(runs) == 1, [r.name for r in runs]
-        yield {**server, "run": runs[0], "root": root}
+    with temporary_settings(updates={PREFECT_API_URL: server["api"]}):
+        with get_client(sync_client=True) as client:
+            runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(
+                name=FlowRunFilterName(like_=CAMPAIGN)), limit=5)
+    assert len(runs) == 1, [r.name for r in runs]
+    return {**server, "run": runs[0], "root": root}
 
 
 def test_ui_shows_the_named_run_its_call_numbered_tasks_and_artifacts(finished_campaign):
