@@ -1,7 +1,8 @@
 # The two commands of the README. Both create ./.venv and install hmflow into it first.
 #   make run    - install, then run the main job (a 200-call campaign of the default method, lm, on the built-in synthetic case)
 #   make test   - install (with test extras, Debian's OPM `flow` and chromium when apt is usable), then run the tests
-#                 (real OPM, Prefect and Parquet integration tests included; `-m slow` ones are the long sweeps)
+#                 (real OPM, Prefect and Parquet integration tests included; `-m slow` ones are the long sweeps),
+#                 two test files at a time (pytest-xdist: the machine's 2 cores; a test's simulations share them)
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -32,4 +33,4 @@ run: install
 	$(BIN)/hmflow run
 
 test: install-test
-	HMFLOW_CACHE_DIR=$$(mktemp -d) PREFECT_HOME=$$(mktemp -d) $(BIN)/python -m pytest -q -m 'not slow' --durations=30
+	HMFLOW_CACHE_DIR=$$(mktemp -d) PREFECT_HOME=$$(mktemp -d) $(BIN)/python -m pytest -q -m 'not slow' -n 2 --dist loadfile --durations=30

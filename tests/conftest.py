@@ -16,6 +16,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -38,6 +39,19 @@ TRUTH_VALUES = {"poro_mult": 1.0, "permx_mult": 1.0, "permy_mult": 1.0, "permz_m
 # has closed the stream its console handler writes to; without this, logging prints a
 # "--- Logging error ---" traceback under the test summary (nothing failed).
 logging.raiseExceptions = False
+
+# `make test` runs two pytest-xdist workers. Each is its own process with its own Prefect
+# servers, which must not share one PREFECT_HOME (one SQLite database, one profile file); and
+# xdist sets COLUMNS=80 in a worker, which would fix the width of hmflow's consoles at import
+# and override the width a test gives a command. Both set before any test module imports
+# Prefect or hmflow.
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+if _WORKER:
+    _HOME = Path(os.environ.get("PREFECT_HOME") or tempfile.mkdtemp(prefix="prefect-")) / _WORKER
+    _HOME.mkdir(parents=True, exist_ok=True)
+    os.environ["PREFECT_HOME"] = str(_HOME)
+    os.environ.pop("COLUMNS", None)
+    os.environ.pop("LINES", None)
 
 # Prefect waits 20 s for its temporary server by default; with two simulations on the 2 cores
 # the server's start (SQLite migrations) can take longer, and the test would fail for it.

@@ -25,7 +25,9 @@ TELEMETRY = ("Failed to send telemetry", "sens-o-matic", "anonymous usage data")
 
 def hmflow(*args: str, cwd: Path, env: dict | None = None, timeout: int = 600
            ) -> subprocess.CompletedProcess:
-    env = {**(os.environ if env is None else env), "COLUMNS": "150"}
+    # wide enough for the summary table's report path to stay on one line, even under a
+    # pytest-xdist worker's longer temporary folder
+    env = {**(os.environ if env is None else env), "COLUMNS": "220"}
     return subprocess.run([sys.executable, "-m", "hmflow.cli", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout, check=False)
 

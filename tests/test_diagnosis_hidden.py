@@ -279,6 +279,7 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
     refused = runner.invoke(app, ["hide", "--out", str(tmp_path / "case"), "--kind", kind])
     assert refused.exit_code == 2 and "nothing is overwritten" in refused.output
     console = Console(width=160, record=True)
+    monkeypatch.setenv("PREFECT_API_URL", prefect_api)  # no temporary server of its own
     result = diagnose_command(case=str(case_toml), storage=tmp_path / "store", workers=2,
                               campaign="hidden-skin", console=console,
                               kinds=["well_skin", "regional_permeability"],
@@ -303,7 +304,6 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
     md = rep.file("report.md").read_text()
     assert "## Diagnosis of case" in md and "### Gain" in md and effect.candidate.id in md
     assert all(p in rep.files for p in doc["plots"]) and rep.verify() == []
-    monkeypatch.setenv("PREFECT_API_URL", prefect_api)  # no temporary server of its own
     again = runner.invoke(app, ["report", "--storage", str(tmp_path / "store"),
                                 "--campaign", "hidden-skin"])
     assert again.exit_code == 0, again.output

@@ -5,7 +5,8 @@ problem names its file and the key or the CSV line.
 
 Each example is a valid case (the built-in synthetic deck, a few observed rows, one or two
 parameters) with one defect drawn from a catalogue, so that every example must be refused.
-The default suite runs 200 examples of each kind; ``-m slow`` runs 1000 more of each.
+The default suite runs 100 examples of each kind (about five of each defect); ``-m slow`` runs
+1000 more of each.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ ROWS = [("PROD1", 31, "WOPR", 200.0), ("PROD1", 31, "WBHP", 250.0),
         ("PROD2", 60, "WOPR", 180.0), ("PROD2", 60, "WWCT", 0.1),
         ("PROD3", 91, "WBHP", 240.0), ("PROD4", 121, "WGOR", 90.0)]
 FIRST_DAY, END_DAY = 31, 2557
+DEFAULT_EXAMPLES = 100
 
 
 # ----------------------------------------------------------------------------- the catalogue
@@ -274,13 +276,13 @@ def _check_csv(refused, example):
     assert all(" line" in p or str(csv_path) == p.split()[0] for p in problems), text
 
 
-@settings(max_examples=200, **SWEEP)
+@settings(max_examples=DEFAULT_EXAMPLES, **SWEEP)
 @given(bad_case())
 def test_malformed_case_files_are_refused_before_any_simulation(refused, example):
     _check_case(refused, example)
 
 
-@settings(max_examples=200, **SWEEP)
+@settings(max_examples=DEFAULT_EXAMPLES, **SWEEP)
 @given(bad_csv())
 def test_malformed_observed_csvs_are_refused_with_their_line(refused, example):
     _check_csv(refused, example)

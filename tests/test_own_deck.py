@@ -28,6 +28,12 @@ SPE9 = REPO.parent / "shared" / "spe9" / "SPE9.DATA"
 needs_spe9 = pytest.mark.skipif(not SPE9.is_file(), reason=f"SPE9 deck not found at {SPE9}")
 
 
+def hmflow_cli(args: list[str]):
+    """``hmflow ARGS`` in this process, 400 columns wide: a message naming a long temporary
+    path is not folded into the middle of a word (a check reads it as one line)."""
+    return CliRunner().invoke(app, args, env={"COLUMNS": "400"})
+
+
 @pytest.fixture(scope="module")
 def spe9_history(tmp_path_factory) -> Path:
     """The SPE9 history-matching deck (WCONHIST per producer, WCONINJH for INJE1)."""
@@ -42,7 +48,7 @@ def spe9_history(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def spe9_case(spe9_history, tmp_path_factory) -> Path:
     where = tmp_path_factory.mktemp("spe9-case")
-    out = CliRunner().invoke(app, ["init", "--deck", str(spe9_history),
+    out = hmflow_cli(["init", "--deck", str(spe9_history),
                                    "--out", str(where / "spe9.toml")])
     assert out.exit_code == 0, out.output
     return where / "spe9.toml"
@@ -122,7 +128,7 @@ def test_init_on_spe9_reads_wconhist_with_units_and_passes_check(spe9_history, s
 @needs_spe9
 def test_init_never_overwrites(spe9_history, spe9_case):
     before = spe9_case.read_text()
-    out = CliRunner().invoke(app, ["init", "--deck", str(spe9_history), "--out", str(spe9_case)])
+    out = hmflow_cli(["init", "--deck", str(spe9_history), "--out", str(spe9_case)])
     assert out.exit_code == 2 and "never overwrites" in " ".join(out.output.split())
     assert spe9_case.read_text() == before
 
@@ -230,7 +236,7 @@ def test_a_stray_slash_that_opm_flow_tolerates_is_a_warning_not_an_error(tmp_pat
     deck = copy_punq_deck(tmp_path / "deck")
     text = deck.read_text()
     deck.write_text(text.replace("\nSCHEDULE", "\nSCHEDULE\nTUNING\n/\n/\n/\n/", 1))
-    out = CliRunner().invoke(app, ["check", "--case", str(write_case_toml(tmp_path / "c.toml",
+    out = hmflow_cli(["check", "--case", str(write_case_toml(tmp_path / "c.toml",
                                                                           deck=deck))])
     said = " ".join(out.output.split())
     assert out.exit_code == 0, said
@@ -481,7 +487,7 @@ def test_init_imports_a_summary_file(tmp_path):
                                run_deck.read_text(), count=1, flags=re.M))
     smspec = OpmFlow().run(run_deck, tmp_path / "run").summary_path
     for summary, out_name in ((smspec, "p"), (smspec.with_suffix(".RSM"), "r")):
-        out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary",
+        out = hmflow_cli(["init", "--deck", str(PUNQ_DECK), "--summary",
                                        str(summary), "--out", str(tmp_path / out_name / "p.toml")])
         assert out.exit_code == 0, out.output
     case = load_case(tmp_path / "p" / "p.toml")
@@ -521,7 +527,7 @@ def test_rsm_export_in_field_units_with_dates_is_converted_into_the_metric_deck(
     history vectors; PUNQ-S3 is METRIC, so rates and pressures are converted."""
     rsm = tmp_path / "export.RSM"
     rsm.write_text(RSM_FIELD)
-    out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
+    out = hmflow_cli(["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
                                    "--out", str(tmp_path / "c" / "p.toml")])
     assert out.exit_code == 0, out.output
     obs = pd.read_csv(tmp_path / "c" / "p_observed.csv")
@@ -538,7 +544,7 @@ def test_a_broken_rsm_is_refused_with_every_line_named(tmp_path):
     rsm = tmp_path / "bad.RSM"
     rsm.write_text(RSM_FIELD.replace("*10**3", "x1000  ").replace("0.2100", "n/a")
                    .replace(" 1-JLY-1967", " 1-XYZ-1967"))
-    out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
+    out = hmflow_cli(["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
                                    "--out", str(tmp_path / "c" / "p.toml")])
     assert out.exit_code == 2 and not (tmp_path / "c").exists()
     text = " ".join(out.output.split())
@@ -546,11 +552,11 @@ def test_a_broken_rsm_is_refused_with_every_line_named(tmp_path):
     assert "bad.RSM:12" in text and "'n/a' is not a number" in text
     assert "bad.RSM:13" in text and "DATE '1-XYZ-1967' is not a date" in text
     rsm.write_text(RSM_FIELD[:RSM_FIELD.index(" 1-FEB")])  # a header and no row
-    out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
+    out = hmflow_cli(["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
                                    "--out", str(tmp_path / "c" / "p.toml")])
     assert out.exit_code == 2 and "holds no data row" in " ".join(out.output.split())
     rsm.write_text(RSM_FIELD.replace("PSIA", "PSIG"))
-    out = CliRunner().invoke(app, ["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
+    out = hmflow_cli(["init", "--deck", str(PUNQ_DECK), "--summary", str(rsm),
                                    "--out", str(tmp_path / "c" / "p.toml")])
     assert out.exit_code == 2 and "gauge pressure" in " ".join(out.output.split())
 

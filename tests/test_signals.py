@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import cli_env
 
 
 def _alive(pgid: int) -> list[str]:
@@ -57,7 +58,7 @@ def test_sigterm_stops_the_campaign_and_its_temporary_server(tmp_path, small_cas
 
 
 @pytest.mark.opm
-def test_kill_9_of_hmflow_leaves_no_server_and_no_simulator(tmp_path, small_case):
+def test_kill_9_of_hmflow_leaves_no_server_and_no_simulator(tmp_path, small_case, prefect_api):
     """SIGKILL cannot be caught: what hmflow started must die with it by itself (the
     temporary Prefect server and the simulators are killed by the kernel, PR_SET_PDEATHSIG),
     and the campaign resumes from its journal."""
@@ -85,7 +86,8 @@ def test_kill_9_of_hmflow_leaves_no_server_and_no_simulator(tmp_path, small_case
     done = len(list(journal.glob("*.json")))
     rerun = subprocess.run(args[:-6] + ["--budget", str(done + 1), "--campaign", "k9",
                                         "--storage", str(store)],
-                           cwd=tmp_path, capture_output=True, text=True, timeout=600)
+                           cwd=tmp_path, capture_output=True, text=True, timeout=600,
+                           env=cli_env(prefect_api))  # resumed on the session's server
     assert rerun.returncode == 0, rerun.stdout[-3000:] + rerun.stderr[-3000:]
     assert sorted(int(p.stem) for p in journal.glob("*.json")) == list(range(done + 1))
 
