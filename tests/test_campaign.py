@@ -231,12 +231,13 @@ def test_a_call_journaled_before_its_worker_died_is_not_simulated_again(tmp_path
 def test_the_default_campaign_simulates_no_point_twice_and_keeps_its_jacobian_valid(
         tmp_path, small_case, prefect_api):
     """`hmflow run` as `make run` types it (the default method, lm; 2 workers; seed 0) on the
-    small synthetic case, 50 calls: no two calls of the journal are of the same point, and no
+    small synthetic case, 30 calls: no two calls of the journal are of the same point, and no
     Jacobian run breaks a physics check its base passes (its finite-difference step went the
     other way). The descents meet the porosity-permeability trend check there: lm version 2
-    sent a Jacobian run across it at call 44 (and 11 more by call 100)."""
+    sent a Jacobian run across it at call 44 (and 11 more by call 100); version 4's steps
+    turned at calls 9, 10, 27 and 28 of 50 (2026-11-28)."""
     assert DEFAULT_AGENT == "lm"
-    budget = 50
+    budget = 30
     run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
                           "--budget", str(budget), "--storage", str(tmp_path / "store")],
                          cwd=tmp_path, env=cli_env(prefect_api, COLUMNS="150"),

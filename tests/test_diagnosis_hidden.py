@@ -8,7 +8,8 @@ report ``none``.
 
 Default run (CI): a hidden well skin in the small synthetic case's deck (`hmflow hide
 --deck`), through the Prefect flow and its CLI printing, and the control with nothing hidden
-on the built-in grid over 3 years. ``-m slow``: the built-in case's control, two more seeded
+on the small synthetic case. ``-m slow``: the controls on the built-in grid (3 and 7 years) and
+the small case's known false alarm, two more seeded
 synthetic cases (an aquifer, a layer), the full sweep, every kind on several seeds, synthetic
 and PUNQ-S3 (measured data made from a truth run of PUNQS3.DATA with the effect applied), and the cases the diagnosis is known to miss today (KNOWN_MISSES: they stay
 in the sweep, asserting the same, so that a fix shows up as a pass).
@@ -79,6 +80,12 @@ LATE_FAULT_HISTORY_END = 1200.0
 (189 held back), under the line. Under the signal-robust noise estimate (scoring.noise) the
 history to day 1600 already shows it (chi2 21, 19 once the globals absorb; the earlier estimate,
 about four times too wide on BHP, read 5 there)."""
+SMALL_FALSE_ALARMS = (2, 5)
+"""Seeds of the small synthetic case (nothing hidden) whose diagnosis answers `unexplained`
+(2026-11-28: seed 2, PROD2's GOR and gas rate biased, z = -4.1, 90 simulations; seed 5 likewise,
+measured the day before): a known false alarm (issue 46). Seeds 0 and 1 answer `none` (top
+chi2 4.0 and 2.6 against a line of 16.1; 60 and 111 simulations): seed 0 is the default run's
+control."""
 SWEEP_SEEDS = (11, 12)
 PUNQ_HISTORY_END = 2200.0
 PUNQ_RECORD_END = 2936.0  # the measured record of PUNQ-S3: the first 8 years
@@ -139,18 +146,20 @@ def assert_found_where_visible(doc: dict, effect, case_dir: Path) -> None:
 
 def diagnose_synthetic(tmp: Path, kind: str | None, seed: int, layout: str = "default"):
     """Diagnose the synthetic case of ``seed`` hiding an effect of ``kind`` (None: the
-    control); ``layout`` "short" (controls only): the built-in grid over 3 years
-    (:data:`hmcore.scenarios.synthetic_deck.SHORT_LAYOUT`)."""
+    control); ``layout`` "short" or "small" (controls only): the built-in grid over 3 years
+    (:data:`hmcore.scenarios.synthetic_deck.SHORT_LAYOUT`), or the small case
+    (:data:`~hmcore.scenarios.synthetic_deck.SMALL_LAYOUT`)."""
     from hmcore.cases import load_case
     from hmcore.diagnosis import diagnose, local_evaluator
     from hmcore.scenarios.hidden import write_hidden_synthetic_case
     from hmcore.scenarios.synthetic import write_synthetic_case
-    from hmcore.scenarios.synthetic_deck import SHORT_LAYOUT
+    from hmcore.scenarios.synthetic_deck import SHORT_LAYOUT, SMALL_LAYOUT
 
     start = time.perf_counter()
-    if layout == "short":
-        assert kind is None, "the short layout is for controls"
-        case_toml, effect = write_synthetic_case(tmp / "case", seed, layout=SHORT_LAYOUT), None
+    if layout in ("short", "small"):
+        assert kind is None, f"the {layout} layout is for controls"
+        grid = SHORT_LAYOUT if layout == "short" else SMALL_LAYOUT
+        case_toml, effect = write_synthetic_case(tmp / "case", seed, layout=grid), None
     else:
         case_toml, effect = write_hidden_synthetic_case(tmp / "case", seed, kind)
     doc = diagnose(load_case(case_toml), local_evaluator(tmp / "runs", workers=2),
@@ -193,16 +202,22 @@ def test_hidden_effect_is_found_in_the_synthetic_case(tmp_path, kind, seed):
     assert list((tmp_path / "out").glob("residuals_*.png"))
 
 
-@pytest.mark.parametrize("layout", [
-    pytest.param("short", id="short"),
-    pytest.param("default", id="built-in", marks=pytest.mark.slow)])
-def test_control_with_nothing_hidden_reports_none(tmp_path, layout):
+@pytest.mark.parametrize("layout,seed", [
+    pytest.param("small", 0, id="small-0"),
+    pytest.param("short", 5, id="short", marks=pytest.mark.slow),
+    pytest.param("default", 5, id="built-in", marks=pytest.mark.slow),
+    *(pytest.param("small", s, id=f"small-{s}", marks=[pytest.mark.slow, pytest.mark.xfail(
+        strict=True, reason="a known false alarm (issue 46): 'unexplained', a bias at one "
+        "well, where nothing is hidden")]) for s in SMALL_FALSE_ALARMS)])
+def test_control_with_nothing_hidden_reports_none(tmp_path, layout, seed):
     """Nothing hidden: the diagnosis must name no cause, far from the line. The default run
-    diagnoses the built-in reservoir over 3 years (SHORT_LAYOUT: its grid, wells and early
-    history at about half the simulation time); the built-in case itself (7 years) with the
-    slow sweep's controls."""
+    diagnoses the small synthetic case of seed 0 (SMALL_LAYOUT: the built-in case's wells,
+    gas cap, aquifer and noise on 10 x 10 x 5 cells over 3 years; 60 simulations); ``-m slow``
+    the built-in grid over 3 years (SHORT_LAYOUT) and the built-in case itself (7 years) with
+    the sweep's seed, and the small case's known false alarms (:data:`SMALL_FALSE_ALARMS`), a
+    strict xfail that a fix turns into a pass."""
     _opm()
-    doc, _ = diagnose_synthetic(tmp_path, None, 5, layout)
+    doc, _ = diagnose_synthetic(tmp_path, None, seed, layout)
     assert doc["causes"][0]["kind"] == "none"
     assert doc["selected"] is None and "no candidate" in doc["verdict"]
     g = doc["gain"]

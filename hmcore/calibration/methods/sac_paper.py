@@ -2,8 +2,9 @@
 :class:`hmcore.calibration.methods.env.HistoryMatchingEnv`.
 
 One simulator call per one-step episode; observation ``[a_prev, E_prev]``; reward ``-E - P``
-(a failed run: ``-failure_penalty - P``, never best) under the E objective, the paper's; under
-the likelihood the objective's (:meth:`hmcore.calibration.objective.Objective.feedback`); MLP policy, learning rate 3e-4, replay
+(a failed run: ``-failure_penalty - P``, never best), the paper's, whatever the case's
+``objective``: the reproduction is defined by its reward (the campaign still chooses its best
+call by the case's objective, as every campaign does); MLP policy, learning rate 3e-4, replay
 buffer 10,000, batch 64, and SB3's SAC defaults for everything else (100 uniform-random steps
 before learning, one gradient step per step, ``ent_coef="auto"``, ``net_arch=[256, 256]``,
 ``tau=0.005``; gamma is irrelevant to one-step episodes). The campaign keeps the best valid
@@ -116,8 +117,7 @@ class BatchedEnv(VecEnv):
         obs, rewards, dones, infos = [], [], [], []
         for env, pending, action, rec in zip(self.envs, self.pending, self._actions, batch):
             pending.record = rec
-            o, _, terminated, truncated, info = env.step(action)
-            r = self.calls.objective.feedback(rec).reward  # -E - P under E: the paper's
+            o, r, terminated, truncated, info = env.step(action)  # r = -E - P, the paper's
             info = {**info, "call": rec["index"], "terminal_observation": o,
                     "TimeLimit.truncated": bool(truncated and not terminated)}
             o, _ = env.reset()  # one-step episodes: the next one starts from [a_prev, E_prev]
