@@ -68,7 +68,7 @@ def hide_problems(out: Path, *, kind: str | None = None, candidate: str | None =
                         "overwritten, choose a new one")
     if kind is not None and kind not in KINDS + GENERATORS:
         problems.append(f"--kind {kind!r}: unknown; one of {list(KINDS)} or a generator "
-                        f"{list(GENERATORS)}")
+                        f"{list(GENERATORS)}, or 'field' with --case")
     if kind in GENERATORS and candidate is not None:
         problems.append(f"--candidate names a library candidate; --kind {kind} generates "
                         "effects beyond the library: give one of them, not both")

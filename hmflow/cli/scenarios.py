@@ -8,7 +8,21 @@ from typing import Optional
 
 import typer
 
-from hmflow.cli.common import GENERATORS_HELP, app, console, fail, num, parse_sets, refuse
+from hmflow.cli.common import (
+    DEFAULT_STORAGE,
+    GENERATORS_HELP,
+    app,
+    console,
+    fail,
+    load_case,
+    num,
+    parse_sets,
+    refuse,
+)
+
+FIELD_KIND = "field"
+"""``--kind field``: a truth of a case's field parameters (:mod:`hmcore.scenarios.field_truth`);
+spelled here so that ``--help`` does not import it."""
 
 
 @app.command()
@@ -17,7 +31,10 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
          kind: Optional[str] = typer.Option(None, "--kind", help="Kind of the hidden effect, "
                                             "drawn by --seed: a library kind, or a generator "
                                             f"of effects beyond the library ({GENERATORS_HELP}"
-                                            "); omit: a control, nothing hidden"),
+                                            "); 'field': a truth drawn from the field prior of "
+                                            "--case; omit: a control, nothing hidden"),
+         case: Optional[str] = typer.Option(None, "--case", help="With --kind field: the case "
+                                            "TOML whose field prior the truth is drawn from"),
          seed: int = typer.Option(0, "--seed", help="Draws the effect, its strength and the "
                                   "noise (and, for the synthetic case, the fields)"),
          candidate: Optional[str] = typer.Option(None, "--candidate", help="Hide this library "
@@ -40,7 +57,17 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
          ) -> None:
     """Write a case whose "measured" history hides one model extension the base model lacks
     (the truth run + realistic correlated noise), to try `hmflow diagnose` on, then `hmflow
-    reveal` to see whether it found it. The effect is recorded in OUT/hidden_effect.json."""
+    reveal` to see whether it found it. The effect is recorded in OUT/hidden_effect.json.
+    With --kind field --case C: a truth of C's field parameters, recorded in
+    OUT/hidden_truth.json, to try `hmflow ensemble` on."""
+    if kind == FIELD_KIND:
+        others = {"--candidate": candidate is not None, "--value": value is not None,
+                  "--deck": deck is not None, "--set": bool(set_),
+                  "--history-end": history_end is not None,
+                  "--record-end": record_end is not None, "--sigma": sigma}
+        return _hide_field(out, case, seed, [k for k, given in others.items() if given])
+    refuse([f"--case {case}: only with --kind field (other kinds use --deck)"]
+           if case is not None else [])
     # the scenarios import pandas and the simulator: keeps `hmflow --help` fast
     from hmcore.model.parameters import ParameterSpace
     from hmcore.scenarios.hide import hide_case, hide_problems
@@ -69,19 +96,58 @@ def hide(out: Path = typer.Option(..., "--out", help="New directory for the case
         console.print(line, soft_wrap=True, highlight=False)
 
 
+def _hide_field(out: Path, case: Optional[str], seed: int, others: list[str]) -> None:
+    """``hide --kind field``: every problem of the request refused, one line each, before the
+    truth is drawn or run; then the truth run and the case."""
+    refuse([f"{o}: not for --kind field (the truth is drawn from the prior of --case)"
+            for o in others] + ([] if case else [("--kind field needs --case (a case TOML "
+                                                   "with kind = \"field\" parameters)")]))
+    # the field truth imports the simulator and pandas: keeps `hmflow --help` fast
+    from hmcore.scenarios.field_truth import field_truth_problems, hide_field_truth, out_problems
+
+    loaded = load_case(case)
+    refuse(out_problems(out) + field_truth_problems(loaded))
+    try:
+        made = hide_field_truth(loaded, out, seed)
+    except ValueError as exc:
+        fail(str(exc))
+    for line in (f"[green]Case written[/]: {made.case_toml}",
+                 (f"  hidden: a truth of the fields of {loaded.source}, seed {seed}; FOPT at the "
+                  f"schedule's end and the truth's files in {made.hidden_json} (look after "
+                  "the ensemble)"),
+                 (f"  observed: {made.observed_rows} rows to day {made.history_end_days:g}, "
+                  "PUNQ-S3's noise, no sigma"),
+                 f"  next:   hmflow ensemble --case {made.case_toml} --campaign NAME",
+                 f"          hmflow reveal --hidden {made.hidden_json} --campaign NAME"):
+        console.print(line, soft_wrap=True, highlight=False)
+
+
 @app.command()
 def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json of a case "
-                                       "written by `hmflow hide`"),
-           diagnosis: Path = typer.Option(..., "--diagnosis", help="diagnosis.json written by "
-                                          "`hmflow diagnose`")) -> None:
+                                       "written by `hmflow hide` (or hidden_truth.json of "
+                                       "`hmflow hide --kind field`)"),
+           diagnosis: Optional[Path] = typer.Option(None, "--diagnosis", help="diagnosis.json "
+                                                    "written by `hmflow diagnose`"),
+           campaign: Optional[str] = typer.Option(None, "--campaign", help="With a "
+                                                  "hidden_truth.json: the `hmflow ensemble` "
+                                                  "run on its case"),
+           storage: Path = typer.Option(DEFAULT_STORAGE, "--storage", help="Artifact store of "
+                                        "--campaign")) -> None:
     """Compare a diagnosis with the effect hidden in its case: right kind and well / layer
-    ranked first, selected, held-back misfit improved. Exit 1 when it was not found."""
+    ranked first, selected, held-back misfit improved. Exit 1 when it was not found.
+    With --campaign: an ensemble run against its hidden field truth (the truth's forecast in
+    the prior's and the posterior's P10-P90, the mean fields' RMSE); exit 1 when the truth's
+    FOPT lies outside the posterior's P10-P90."""
+    refuse([f"{label} {path}: no such file"
+            for label, path in (("--hidden", hidden), ("--diagnosis", diagnosis))
+            if path is not None and not path.is_file()]
+           + ([("give --diagnosis (a hidden effect) or --campaign (a hidden field truth), one "
+                "of them")] if (diagnosis is None) == (campaign is None) else []))
+    if campaign is not None:
+        return _reveal_field(hidden, storage, campaign)
     # the judging imports the diagnosis (pandas): keeps `hmflow --help` fast
     from hmcore.scenarios.hide import reveal as judged
 
-    refuse(f"{label} {path}: no such file"
-           for label, path in (("--hidden", hidden), ("--diagnosis", diagnosis))
-           if not path.is_file())
     r = judged(hidden, diagnosis)
     if r.several:
         _print_effects(r)
@@ -89,6 +155,33 @@ def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json
         _print_effect(r)
     console.print("[bold green]FOUND[/]" if r.found else "[bold red]NOT FOUND[/]")
     if not r.found:
+        raise typer.Exit(1)
+
+
+def _reveal_field(hidden: Path, storage: Path, campaign: str) -> None:
+    """``reveal --campaign``: the truth's quantities against the bands, the fields' RMSE."""
+    from hmcore.scenarios.field_truth import reveal_field_truth
+
+    try:
+        r = reveal_field_truth(hidden, storage, campaign)
+    except (ValueError, OSError, KeyError) as exc:
+        fail(str(exc))
+    console.print(f"ensemble {campaign} against the truth of {hidden} (P90 <= truth <= P10):",
+                  highlight=False)
+    for c in r.checks:
+        mark = "[green]inside[/]" if c.inside else "[red]outside[/]"
+        console.print(f"  {c.ensemble:9s} {c.well} {c.quantity}: truth {c.truth:.5g}, "
+                      f"P90/P50/P10 {c.P90:.5g}/{c.P50:.5g}/{c.P10:.5g} ({c.members} members) "
+                      f"{mark}", highlight=False, soft_wrap=True)
+    for e in ("prior", "posterior"):
+        n = sum(c.inside for c in r.checks if c.ensemble == e)
+        total = sum(c.ensemble == e for c in r.checks)
+        console.print(f"{e}: {n} of {total} quantities inside P10-P90", highlight=False)
+    for e in r.errors:
+        console.print(f"field {e.field} ({e.space}): RMSE of the mean to the truth, prior "
+                      f"{e.prior:.4g} -> posterior {e.posterior:.4g}", highlight=False)
+    console.print("[bold green]FOPT INSIDE[/]" if r.fopt_inside else "[bold red]FOPT OUTSIDE[/]")
+    if not r.fopt_inside:
         raise typer.Exit(1)
 
 
