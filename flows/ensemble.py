@@ -41,6 +41,7 @@ from tasks.ensemble import (
     submit_members,
     update_step,
 )
+from tasks.ensemble_report import ensemble_report
 
 
 def default_ensemble_name(case_name: str) -> str:
@@ -113,6 +114,7 @@ def ensemble_flow(case: str = "synthetic", workers: Annotated[int, Field(ge=1)] 
                 return stopped(ensemble)
     forecast = forecast_step(loaded, setup.observations, storage, campaign, iterations,
                              planned)
+    report = ensemble_report(storage, campaign)
     doc = forecast.read_json("summary.json")
     line = (f"ensemble {campaign}: {loaded.ensemble.size} members, {iterations} "
             f"assimilation(s), {doc['runs']} runs ({doc['failed']} failed); "
@@ -120,6 +122,7 @@ def ensemble_flow(case: str = "synthetic", workers: Annotated[int, Field(ge=1)] 
     logger.info(line)
     return {"campaign": campaign, "storage": storage, "posterior": ensemble.ref(),
             "forecast": forecast.ref(), "runs": doc["runs"], "failed": doc["failed"],
+            "report": report.ref(), "report_html": str(report.file("report.html")),
             "summary": line}
 
 

@@ -5,7 +5,9 @@
     campaign.json                     the settings the name is bound to
     case/v0001/                       the case as run (as a calibration campaign's)
     ensemble-00/v0001/                the prior: ensemble.parquet (one row per parameter, one
-                                      float32 column per member), ensemble.json (seeds, layout)
+                                      float32 column per member), ensemble.json (seeds, layout,
+                                      the grid's dims), grid.parquet (the active cells' global
+                                      indices: where a parameter's cell sits on a map)
     ensemble-01/v0001/ ...            the ensemble after assimilation 1, 2, ... (the last one
                                       is the posterior)
     evaluations-members-00/           the journal of the prior's member runs (one record per
@@ -13,7 +15,12 @@
                                       ensembles', the last one the posterior run
     ensemble-runs/i00-m0003/ ...      the members' run directories
     forecast/v0001/                   forecast.parquet (P90/P50/P10, prior and posterior),
-                                      members.parquet, summary.json (iterations, failures)
+                                      members.parquet, summary.json (iterations, failures),
+                                      curves.parquet (every prior and posterior member's curves,
+                                      whole schedule), misfit.parquet (every member's data
+                                      misfit, every round of runs)
+    report/v0001/                     report.md, report.html, report.json and the PNG figures
+                                      (tasks.ensemble_report; rebuilt by hmflow report)
 """
 
 from __future__ import annotations
@@ -25,6 +32,10 @@ ENSEMBLE_RUNS = "ensemble-runs"
 FORECAST_STEP = "forecast"
 ENSEMBLE_FILE = "ensemble.parquet"
 ENSEMBLE_DOC = "ensemble.json"
+GRID_FILE = "grid.parquet"
+CURVES_FILE = "curves.parquet"
+MISFIT_FILE = "misfit.parquet"
+REPORT_STEP = "report"
 
 
 def ensemble_step(iteration: int) -> str:

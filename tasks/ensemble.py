@@ -9,7 +9,8 @@
   :class:`~hmcore.fields.members.MemberSimulator`;
 * :func:`update_step`: ES-MDA's update from the members' records, the next ensemble stored;
 * :func:`forecast_step`: P90/P50/P10 of the prior and the posterior, every member's value, and
-  what each round of runs gave.
+  what each round of runs gave; every prior and posterior member's curves and every member's
+  misfit per round, which the report (:mod:`tasks.ensemble_report`) draws.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
@@ -26,6 +28,7 @@ from hmcore.calibration.calls import Job
 from hmcore.fields.assimilation import (
     draw_ensemble,
     iteration_summary,
+    misfit,
     smoother_data,
     update,
     well_locations,
@@ -48,10 +51,13 @@ from storage import (
     to_jsonable,
 )
 from storage.ensemble import (
+    CURVES_FILE,
     ENSEMBLE_DOC,
     ENSEMBLE_FILE,
     ENSEMBLE_RUNS,
     FORECAST_STEP,
+    GRID_FILE,
+    MISFIT_FILE,
     ensemble_step,
     member_journal,
     member_run_name,
@@ -102,7 +108,8 @@ def prepare_ensemble(case: Case) -> EnsembleSetup:
 @task(name="prior", cache_policy=NO_CACHE)
 def prior_step(case: Case, setup: EnsembleSetup, storage: str, campaign: str,
                case_version: ArtifactVersion) -> ArtifactVersion:
-    """The prior ensemble (``ensemble-00``): drawn or read, with its seeds; reused, not drawn
+    """The prior ensemble (``ensemble-00``): drawn or read, with its seeds and the grid (its
+    dims and active cells, where the report draws a parameter's cell); reused, not drawn
     again, when stored from the same case and fields."""
     spec = case.ensemble
     inputs = {"case": case_version.ref(), "size": spec.size, "seed": spec.seed,
@@ -112,9 +119,12 @@ def prior_step(case: Case, setup: EnsembleSetup, storage: str, campaign: str,
     def write(directory: Path) -> None:
         prior = draw_ensemble(case.fields, setup.grid, spec.size, case.space.names, spec.seed)
         ensemble_table(prior.X, prior.layout).to_parquet(directory / ENSEMBLE_FILE)
+        pd.DataFrame({"active": setup.grid.active.astype(np.int64)}).to_parquet(
+            directory / GRID_FILE)
         _write_doc(directory, {"iteration": 0, "members": spec.size,
                                "active": list(range(spec.size)), "seeds": dict(prior.seeds),
-                               "sources": dict(prior.sources), **_layout_doc(prior.layout)})
+                               "sources": dict(prior.sources), "dims": list(setup.grid.dims),
+                               **_layout_doc(prior.layout)})
 
     return ArtifactStore(storage).put(campaign, ensemble_step(0), inputs, write, code_version())
 
@@ -214,7 +224,9 @@ def forecast_step(case: Case, observations: ObservationSet, storage: str, campai
                   iterations: int, planned: dict[int, list[int]]) -> ArtifactVersion:
     """The forecast of the prior (the runs of ``ensemble-00``) and the posterior (the runs of
     ``ensemble-<iterations>``) and the summary of every round of runs (``planned``: the
-    members each round was to run)."""
+    members each round was to run); beside them the members' curves
+    (:func:`member_curves`) and misfits (:func:`member_misfits`), so that the report reads
+    the store and no run directory."""
     wells = sorted(case.info.wells)
     store = ArtifactStore(storage)
     rounds = {i: member_records(storage, campaign, i) for i in range(iterations + 1)}
@@ -246,7 +258,34 @@ def forecast_step(case: Case, observations: ObservationSet, storage: str, campai
               "iterations": iterations}
     return store.put_files(campaign, FORECAST_STEP, inputs,
                            {"forecast.parquet": table, "members.parquet":
-                            member_values(curves, wells), "summary.json": doc}, code_version())
+                            member_values(curves, wells), "summary.json": doc,
+                            CURVES_FILE: member_curves(curves),
+                            MISFIT_FILE: member_misfits(scored)}, code_version())
+
+
+def member_curves(curves: dict[str, dict[int, pd.DataFrame]]) -> pd.DataFrame:
+    """Every member's curves, whole schedule, in one table: ``ensemble`` (prior, posterior),
+    ``member`` and :func:`~hmcore.simulation.curves.read_curves`' columns (values float32)."""
+    frames = [c.assign(ensemble=e, member=m) for e, by_member in curves.items()
+              for m, c in sorted(by_member.items())]
+    columns = ["ensemble", "member", "well", "quantity", "days", "value", "unit"]
+    if not frames:
+        return pd.DataFrame({c: pd.Series(dtype=float if c in ("days", "value") else
+                                          int if c == "member" else str) for c in columns})
+    out = pd.concat(frames, ignore_index=True)[columns]
+    for c in ("ensemble", "well", "quantity", "unit"):
+        out[c] = out[c].astype("category")
+    return out.astype({"member": np.int32, "value": np.float32})
+
+
+def member_misfits(scored: dict[int, dict[int, dict]]) -> pd.DataFrame:
+    """Every member's data misfit (:func:`~hmcore.fields.assimilation.misfit`, NaN for a
+    failed run) in every round of runs: ``iteration`` (0 the prior's runs, the last the
+    posterior's), ``member``, ``status``, ``failure``, ``misfit``."""
+    rows = [{"iteration": i, "member": m, "status": str(r.get("status")),
+             "failure": r.get("failure") or "", "misfit": misfit(r)}
+            for i, records in sorted(scored.items()) for m, r in sorted(records.items())]
+    return pd.DataFrame(rows, columns=["iteration", "member", "status", "failure", "misfit"])
 
 
 def summary_file(run_dir: str | None) -> Path | None:

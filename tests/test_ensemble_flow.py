@@ -3,7 +3,9 @@ the small synthetic case (conftest.small_case: 10 x 10 x 5 cells, 4 wells, 3 yea
 field drawn per layer with gstools and a PERMX (= PERMY) field from it, 8 members, 2
 assimilations. The simulator is OPM Flow behind a command template that logs every call and
 fails member 5 of the prior (a real non-zero exit), so the flow must leave it out of the
-updates and go on; and a run where every member fails stops with one line."""
+updates and go on; the run's report (maps, wells, misfit boxes, fans) is stored and rebuilt
+by ``hmflow report`` with no simulator call; and a run where every member fails stops with
+one line."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import cli_env
+from test_ensemble_report import drawn
 
 from hmcore.cases import load_case
 from hmcore.fields.grdecl import read_grdecl
@@ -24,7 +27,13 @@ from hmcore.fields.layout import Layout
 from hmcore.fields.members import INCLUDE_NAME, ensemble_matrix
 from hmcore.fields.transform import to_physical
 from storage import ArtifactStore, EvaluationJournal
-from storage.ensemble import ENSEMBLE_FILE, FORECAST_STEP, ensemble_step, member_journal
+from storage.ensemble import (
+    ENSEMBLE_FILE,
+    FORECAST_STEP,
+    REPORT_STEP,
+    ensemble_step,
+    member_journal,
+)
 
 pytestmark = [pytest.mark.opm]
 SIZE, FAILED = 8, 5
@@ -184,6 +193,41 @@ def test_a_rerun_of_a_finished_ensemble_simulates_nothing(run):
                           storage=str(run["store"].root), campaign="e")
     assert run["log"].read_text() == before
     assert again["posterior"] == run["result"]["posterior"]
+
+
+REPORT_FIGURES = ({"misfit_boxes.png", "forecast_fans.png"}
+                  | {f"well__PROD{w}.png" for w in range(1, 5)}
+                  | {f"map__{f}__k{k:02d}.png" for f in ("poro", "permx") for k in range(1, 6)})
+
+
+def test_the_report_is_stored_with_every_figure_drawn(run):
+    version = run["store"].latest("e", REPORT_STEP)
+    assert version is not None and version.verify() == []
+    assert run["result"]["report_html"] == str(version.file("report.html"))
+    pngs = {n for n in version.files if n.endswith(".png")}
+    assert REPORT_FIGURES <= pngs, sorted(REPORT_FIGURES - pngs)
+    assert [n for n in sorted(pngs) if not drawn(version.file(n).read_bytes())] == []
+    html = version.file("report.html").read_text()
+    assert [n for n in sorted(pngs) if f'data-figure="{n}"' not in html] == []
+    markdown = version.file("report.md").read_text()
+    assert "Truth: unknown" in markdown and "| posterior | 7 | 7 | 0 |" in markdown
+    doc = version.read_json("report.json")
+    assert doc["kind"] == "ensemble" and doc["failed"] == 1
+    assert {(r["ensemble"], r["members"]) for r in doc["forecast"]} == {("prior", 7),
+                                                                       ("posterior", 7)}
+
+
+def test_hmflow_report_rebuilds_the_ensembles_report_with_no_simulator_call(run, prefect_api):
+    before = run["log"].read_text()
+    done = subprocess.run([sys.executable, "-m", "hmflow.cli", "report", "--campaign", "e",
+                           "--storage", str(run["store"].root)], capture_output=True,
+                          text=True, timeout=300, env=cli_env(prefect_api), check=False)
+    out = " ".join((done.stdout + done.stderr).split())
+    assert done.returncode == 0, out[-2000:]
+    assert run["log"].read_text() == before
+    version = run["store"].latest("e", REPORT_STEP)
+    assert "report.html" in out and "posterior" in out and version.verify() == []
+    assert version.version == 1  # the same run and code: the stored report, reused
 
 
 def test_too_few_members_left_stops_the_iteration_with_one_line(tmp_path, small_case,

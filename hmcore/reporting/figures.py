@@ -34,7 +34,7 @@ def png(fig: Figure) -> bytes:
     return buf.getvalue()
 
 
-def _unit(curves: pd.DataFrame, quantity: str) -> str:
+def unit_of(curves: pd.DataFrame, quantity: str) -> str:
     u = curves.loc[curves.quantity == quantity, "unit"]
     u = u[u.astype(str).str.len() > 0] if len(u) else u
     if quantity == "WWCT":
@@ -48,7 +48,7 @@ def well_curves(well: str, observed: pd.DataFrame, curves: pd.DataFrame,
     ObservationSet rows of this well (``quantity, days, observed, sigma, period``);
     ``curves``: the curves artifact rows of this well."""
     end = float(curves.days.max()) if len(curves) else None
-    panels = _panels(observed, curves)
+    panels = panels_of(observed, curves)
     rows = 2 if len(panels) > 3 else 1
     fig = Figure(figsize=(13, 6.4 if rows == 2 else 3.6))
     axes = fig.subplots(rows, 3, sharex=True, squeeze=False)
@@ -56,45 +56,69 @@ def well_curves(well: str, observed: pd.DataFrame, curves: pd.DataFrame,
         ax.set_visible(False)
     for ax, (q, title) in zip(axes.flat, panels):
         obs = observed[observed.quantity == q].sort_values("days")
-        if history_end is not None and end is not None:
-            last_obs = float(observed.days.max()) if len(observed) else history_end
-            if last_obs > history_end:
-                ax.axvspan(history_end, min(last_obs, end), color="#f3e9d2", zorder=0,
-                           label="held back (not fitted)")
-            if end > max(last_obs, history_end):
-                ax.axvspan(max(last_obs, history_end), end, color="#e8eef7", zorder=0,
-                           label="forecast (no data)")
-        if len(obs):
-            lo, hi = _band(q, obs.observed.to_numpy(float), obs.sigma.to_numpy(float))
-            ax.fill_between(obs.days, lo, hi, color="#d62728", alpha=0.15, lw=0,
-                            label="observed \u00b1 1 sigma")
-            ax.plot(obs.days, obs.observed, "o", ms=3, color="#d62728", label="observed")
+        shade_periods(ax, observed, history_end, end)
+        observed_points(ax, q, obs)
         for member in ("centre", "deck", "truth", "best"):
             sel = curves[(curves.member == member) & (curves.quantity == q)].sort_values("days")
             if len(sel):
                 ax.plot(sel.days, sel.value, **STYLE[member])
-        unit = _unit(curves, q)
         ax.set_title(f"{well}: {title}", fontsize=10)
-        ax.set_ylabel(unit)
-        if q == "WWCT":
-            ax.set_ylim(-0.02, 1.02)
-        else:
-            ax.set_ylim(bottom=0)
-        ax.grid(alpha=0.3)
+        ax.set_ylabel(unit_of(curves, q))
+        response_axis(ax, q)
     for ax in axes[-1]:
         ax.set_xlabel("days since start")
+    shared_legend(fig, axes, rows)
+    return png(fig)
+
+
+def shade_periods(ax, observed: pd.DataFrame, history_end: float | None,
+                  end: float | None) -> None:
+    """Shade the held-back period (measured, not fitted: from ``history_end`` to the last
+    observation) and the forecast (no data: from there to ``end``, the schedule's end)."""
+    if history_end is None or end is None:
+        return
+    last_obs = float(observed.days.max()) if len(observed) else history_end
+    if last_obs > history_end:
+        ax.axvspan(history_end, min(last_obs, end), color="#f3e9d2", zorder=0,
+                   label="held back (not fitted)")
+    if end > max(last_obs, history_end):
+        ax.axvspan(max(last_obs, history_end), end, color="#e8eef7", zorder=0,
+                   label="forecast (no data)")
+
+
+def observed_points(ax, quantity: str, obs: pd.DataFrame) -> None:
+    """The observed points of one response (``obs``: rows with days, observed, sigma) and
+    their noise band, +/- 1 sigma."""
+    if len(obs):
+        lo, hi = noise_band(quantity, obs.observed.to_numpy(float), obs.sigma.to_numpy(float))
+        ax.fill_between(obs.days, lo, hi, color="#d62728", alpha=0.15, lw=0,
+                        label="observed \u00b1 1 sigma")
+        ax.plot(obs.days, obs.observed, "o", ms=3, color="#d62728", label="observed")
+
+
+def response_axis(ax, quantity: str) -> None:
+    """A response panel's y range (water cut 0-1, everything else from 0) and grid."""
+    if quantity == "WWCT":
+        ax.set_ylim(-0.02, 1.02)
+    else:
+        ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+
+
+def shared_legend(fig: Figure, axes: np.ndarray, rows: int, ncol: int | None = None) -> None:
+    """One legend below the panels with every label any panel drew, once (``ncol`` columns;
+    all in one row by default)."""
     handles, labels = axes.flat[0].get_legend_handles_labels()
     for ax in axes.flat[1:]:
         for h, lab in zip(*ax.get_legend_handles_labels()):
             if lab not in labels:
                 handles.append(h)
                 labels.append(lab)
-    fig.legend(handles, labels, loc="lower center", ncol=len(labels), frameon=False,
+    fig.legend(handles, labels, loc="lower center", ncol=ncol or len(labels), frameon=False,
                bbox_to_anchor=(0.5, -0.04 if rows == 2 else -0.12))
-    return png(fig)
 
 
-def _panels(observed: pd.DataFrame, curves: pd.DataFrame) -> tuple[tuple[str, str], ...]:
+def panels_of(observed: pd.DataFrame, curves: pd.DataFrame) -> tuple[tuple[str, str], ...]:
     """A producer's six panels, or an injector's: the phases it injects and its BHP."""
     def shows(q: str) -> bool:
         sel = curves[curves.quantity == q]
@@ -104,7 +128,7 @@ def _panels(observed: pd.DataFrame, curves: pd.DataFrame) -> tuple[tuple[str, st
     return injected + INJECTOR_PANELS[2:] if injected else PANELS
 
 
-def _band(quantity: str, y: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def noise_band(quantity: str, y: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """y +/- sigma, never below 0 (rates, pressures, ratios) nor above 1 (water cut)."""
     s = np.where(np.isfinite(sigma), sigma, 0.0)
     lo, hi = np.maximum(y - s, 0.0), y + s
@@ -255,7 +279,7 @@ def forecast_fan(curves: pd.DataFrame, quantities: list[tuple[str, str]], histor
             ax.axvline(history_end, color="#444444", lw=1, ls="-.", label="end of fitted history")
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("days since start")
-        ax.set_ylabel(_unit(sel, q))
+        ax.set_ylabel(unit_of(sel, q))
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     return png(fig)

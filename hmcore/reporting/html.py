@@ -114,8 +114,8 @@ def _figures(inputs: ReportInputs, draw: bool) -> dict[str, bytes]:
         for well in _wells(inputs):
             obs = (inputs.observed[inputs.observed.well == well] if inputs.observed is not None
                    else pd.DataFrame(columns=["quantity", "days", "observed", "sigma"]))
-            add(f"well__{_safe(well)}", lambda w=well, o=obs: figs.well_curves(
-                w, _plottable_observed(o), _plottable_curves(curves[curves.well == w]),
+            add(f"well__{safe_name(well)}", lambda w=well, o=obs: figs.well_curves(
+                w, plottable_observed(o), plottable_curves(curves[curves.well == w]),
                 inputs.history_end))
     if len(t):
         add("best_so_far", lambda: figs.best_so_far(t, inputs.references.get("floor"),
@@ -141,18 +141,18 @@ def _wells(inputs: ReportInputs) -> list[str]:
 
 
 
-def _safe(name: str) -> str:
+def safe_name(name: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
 
 
-def _plottable_observed(obs: pd.DataFrame) -> pd.DataFrame:
+def plottable_observed(obs: pd.DataFrame) -> pd.DataFrame:
     """GOR and water cut only while the well flows (they are undefined when it is shut)."""
     if "flowing" in obs:
         return obs[obs.flowing.astype(bool) | ~obs.quantity.isin(["WGOR", "WWCT"])]
     return obs
 
 
-def _plottable_curves(curves: pd.DataFrame) -> pd.DataFrame:
+def plottable_curves(curves: pd.DataFrame) -> pd.DataFrame:
     """Simulated GOR and water cut where the well produces oil, BHP where it is a pressure (a
     summary reports 0 before the well exists)."""
     out = curves.copy()
@@ -171,7 +171,7 @@ def _fmt(v, digits: int = 4) -> str:
     return f"{v:.{digits}g}" if abs(v) < 1e-3 or abs(v) >= 1e5 else f"{v:.{digits}f}"
 
 
-def _volume(v) -> str:
+def volume_text(v) -> str:
     """A cumulative volume as engineers read one: 1,685,000 (4 significant digits)."""
     if v is None or not math.isfinite(float(v)):
         return ""
@@ -247,7 +247,7 @@ def _forecast(inputs: ReportInputs) -> dict | None:
                 .str.lower().to_dict())
     show.insert(1, "unit", [unit.get(q, "") for q in f.quantity])
     for c in ("P90", "P50", "P10", "truth"):
-        show[c] = [_volume(v) for v in show[c]]
+        show[c] = [volume_text(v) for v in show[c]]
     show["truth_inside"] = [{True: "yes", False: "NO"}.get(v, "") for v in show.truth_inside]
     if not doc.get("truth_run", doc.get("truth_known")):
         show = show.drop(columns=["truth", "truth_inside"])

@@ -22,6 +22,7 @@ from hmflow.cli.common import (
     fail,
     folder,
     load_case,
+    print_forecast,
     print_tables,
     refuse,
 )
@@ -160,9 +161,13 @@ def report(storage: Path = typer.Option(DEFAULT_STORAGE, "--storage"),
     from flows.report import report_flow
 
     try:
-        report_flow(storage=str(storage), campaign=campaign)
+        result = report_flow(storage=str(storage), campaign=campaign)
     except FileNotFoundError as exc:
         fail(str(exc))
+    if result["kind"] == "ensemble":
+        print_forecast(storage, campaign)
+        console.print(f"report: {result['report_html']}", highlight=False, soft_wrap=True)
+        return
     print_report(storage, campaign)
 
 

@@ -10,7 +10,6 @@ from typing import Optional
 
 import typer
 from rich.progress import BarColumn, TextColumn, TimeElapsedColumn
-from rich.table import Table
 
 from flows.inputs import ensemble_problems
 from hmflow.cli.common import (
@@ -24,6 +23,7 @@ from hmflow.cli.common import (
     fail,
     folder,
     load_case,
+    print_forecast,
     refuse,
 )
 from hmflow.cli.flowrun import check_inputs, fit_workers, flow_refused, start_api
@@ -82,6 +82,7 @@ def ensemble(case: str = typer.Option(..., "--case", help="Case TOML file with k
         fail(str(exc))
     print_forecast(storage, name)
     console.print(result["summary"], highlight=False, soft_wrap=True)
+    console.print(f"report: {result['report_html']}", highlight=False, soft_wrap=True)
 
 
 def member_poll(storage: Path, campaign: str, rounds: int, size: int) -> Callable[[], dict]:
@@ -100,28 +101,3 @@ def member_poll(storage: Path, campaign: str, rounds: int, size: int) -> Callabl
         return {"completed": sum(counts), "round": label}
 
     return poll
-
-
-def print_forecast(storage: Path, campaign: str) -> None:
-    """The stored forecast: P90/P50/P10 of each quantity, prior and posterior, and the data
-    misfit (mean square whitened residual) of each round of runs."""
-    # storage imports pandas: keeps `hmflow --help` fast
-    from storage import ArtifactStore
-    from storage.ensemble import FORECAST_STEP
-
-    version = ArtifactStore(storage).latest(campaign, FORECAST_STEP)
-    table = version.read_parquet("forecast.parquet")
-    doc = version.read_json("summary.json")
-    t = Table(title="Forecast at the schedule's end (P90 low, P10 high)")
-    for col in ("quantity", "ensemble", "members", "P90", "P50", "P10"):
-        t.add_column(col, justify="left" if col in ("quantity", "ensemble") else "right")
-    for row in table.sort_values(["well", "quantity"], kind="stable").itertuples():
-        t.add_row(row.label, row.ensemble, str(row.members),
-                  *(f"{getattr(row, p):.5g}" for p in ("P90", "P50", "P10")))
-    console.print(t)
-    for it in doc["iterations"]:
-        failed = (f", {it['failed']} failed {it['failed_by_kind']}" if it["failed"] else "")
-        misfit = it["misfit_median"]
-        console.print(f"ensemble {it['iteration']}: {it['ran']}/{it['planned']} members ran"
-                      f"{failed}; median misfit "
-                      + (f"{misfit:.4g}" if misfit is not None else "n/a"), highlight=False)
