@@ -16,7 +16,8 @@ from conftest import requires_opm, requires_punq, write_case_toml
 from hmcore.cases import load_case
 from hmcore.errors import CaseError
 from hmcore.model.noise_section import NoiseLevel, QuantityNoise
-from hmcore.scoring.noise import SIGMA_FLOOR, NoiseSeries, censored_sigma, fit_noise
+from hmcore.scoring.noise import SIGMA_FLOOR, NoiseSeries, fit_noise
+from hmcore.scoring.noise_scale import censored_sigma
 from hmcore.scoring.noise_table import format_noise_table, noise_summary, noise_table
 from hmcore.scoring.observations import ObservationSet
 

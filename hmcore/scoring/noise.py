@@ -7,9 +7,11 @@
   no estimate.
 * :func:`fit_noise` - noise levels and one AR(1) correlation from series without stated sigma,
   by restricted likelihood of contrasts free of a local line within each run of continuous
-  signal (:class:`NoiseSeries`); :func:`censored_sigma` for a series clipped at 0;
-  :func:`variogram_rho` the correlation of series whose sigma the data give. Used by
-  :mod:`hmcore.scoring.noise_fill` for :class:`hmcore.scoring.observations.ObservationSet`.
+  signal (:class:`NoiseSeries`), whose rows may carry a relative noise weight (a noise that
+  grows with the level: :mod:`hmcore.scoring.noise_scale` chooses it and has the level of a
+  series clipped at 0); :func:`variogram_rho` the correlation of series whose sigma the data
+  give. Used by :mod:`hmcore.scoring.noise_fill` for
+  :class:`hmcore.scoring.observations.ObservationSet`.
 * The floors and thresholds the estimate keeps to (:data:`SIGMA_FLOOR`,
   :data:`FLOOR_SIGNAL_SHARE`, ...).
 """
@@ -191,11 +193,6 @@ RHO_WIDE = 0.5
 (short runs between shut-ins): the noise report says so, and the levels assume the mean."""
 
 
-RELATIVE_MARGIN = 2.0
-"""A water cut's noise is read as relative to its value when that model's log-likelihood beats
-the absolute one's by more than this (a factor e^2 in likelihood)."""
-
-
 UNCERTAIN_FACTOR = 1.5
 """A level whose range (sampling and the correlations the data support) reaches beyond this
 factor of it is reported uncertain."""
@@ -247,12 +244,15 @@ class NoiseSeries:
     ``position`` the row number along the well's whole series of the quantity, the lag unit
     of the AR(1) noise (default 0, 1, ...); ``run`` labels stretches of rows over which the
     signal is continuous: a shut-in, a rate change or a breakthrough between two rows starts
-    a new run (default: one run)."""
+    a new run (default: one run); ``weight`` the noise of each row relative to the others
+    (default: the same on every row): the noise of row i is ``sigma * weight[i]``, so a noise
+    that grows with the signal's level is a weight (see :mod:`hmcore.scoring.noise_scale`)."""
 
     values: np.ndarray
     days: np.ndarray | None = None
     position: np.ndarray | None = None
     run: np.ndarray | None = None
+    weight: np.ndarray | None = None
 
     def chunks(self) -> list[np.ndarray]:
         """Row indices of the stretches a local line is fitted to: each run without its first
@@ -271,8 +271,8 @@ class NoiseSeries:
         return out
 
 
-def _contrasts(y: np.ndarray, t: np.ndarray, p: np.ndarray, rho: float
-               ) -> tuple[np.ndarray, np.ndarray]:
+def _contrasts(y: np.ndarray, t: np.ndarray, p: np.ndarray, rho: float,
+               w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Trend-free, uncorrelated contrasts of a stack of chunks of one length and their REML
     log-determinant terms.
 
@@ -280,10 +280,14 @@ def _contrasts(y: np.ndarray, t: np.ndarray, p: np.ndarray, rho: float
     ``rho ** |p_i - p_j|``): the whitened values ``L^-1 y`` (``C = L L'``) projected off the
     whitened trend basis are ``rows - 2`` independent N(0, sigma^2) contrasts per chunk. The
     term ``log|L| + log|R|`` (R from the QR of the whitened basis) is the part of the
-    restricted likelihood that depends on ``rho`` besides the contrasts."""
+    restricted likelihood that depends on ``rho`` besides the contrasts. With row weights
+    ``w`` (chunks x rows) the noise is ``sigma w_i e_i``: ``C_ij = w_i w_j rho^|p_i - p_j|``
+    (generalized least squares; ``log|L|`` then holds ``sum log w``)."""
     k, n = y.shape
     lag = np.abs(p[:, :, None] - p[:, None, :])
     cov = rho ** lag if rho > 0 else np.broadcast_to(np.eye(n), (k, n, n))
+    if w is not None:
+        cov = cov * w[:, :, None] * w[:, None, :]
     chol = np.linalg.cholesky(cov)
     tc = t - t.mean(axis=1, keepdims=True)
     basis = np.stack([np.ones((k, n)), tc / np.ptp(t, axis=1, keepdims=True)], axis=2)
@@ -340,6 +344,9 @@ class NoiseFit:
     rho_range: tuple[float, float] | None = None
     """The correlations the data support (restricted likelihood within
     :data:`RHO_SUPPORT` of its best); None when rho was given."""
+    terms: tuple[float, ...] = ()
+    """Each series' log-determinant term of the restricted likelihood at ``rho`` (with rho
+    given): what a model of the noise's scale pays besides its contrasts."""
 
     @property
     def rho_identified(self) -> bool:
@@ -359,29 +366,32 @@ class _Chunks:
 
     def __init__(self, series: list[NoiseSeries]):
         self.n_series = len(series)
-        by_len: dict[int, list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]] = {}
+        by_len: dict[int, list[tuple]] = {}
         for i, s in enumerate(series):
             y = np.asarray(s.values, float)
             t = np.arange(y.size, dtype=float) if s.days is None else np.asarray(s.days, float)
             p = np.arange(y.size, dtype=float) if s.position is None else \
                 np.asarray(s.position, float)
+            w = np.ones(y.size) if s.weight is None else np.asarray(s.weight, float)
             for c in s.chunks():
                 if np.ptp(t[c]) > 0:
-                    by_len.setdefault(c.size, []).append((i, y[c], t[c], p[c]))
-        self.stacks = [(np.array([a[0] for a in v]), np.array([a[1] for a in v]),
-                        np.array([a[2] for a in v]), np.array([a[3] for a in v]))
+                    by_len.setdefault(c.size, []).append((i, y[c], t[c], p[c], w[c]))
+        self.weighted = any(s.weight is not None for s in series)
+        self.stacks = [tuple(np.array([a[j] for a in v]) for j in range(5))
                        for v in by_len.values()]
+        self.terms = np.zeros(self.n_series)
 
     def at(self, rho: float) -> tuple[list[np.ndarray], float]:
-        """Each series' contrasts at ``rho`` and the sum of the log-determinant terms."""
+        """Each series' contrasts at ``rho`` and the sum of the log-determinant terms (each
+        series' own in :attr:`terms`)."""
         parts: list[list[np.ndarray]] = [[] for _ in range(self.n_series)]
-        total = 0.0
-        for owner, y, t, p in self.stacks:
-            u, term = _contrasts(y, t, p, rho)
-            total += float(term.sum())
+        self.terms = np.zeros(self.n_series)
+        for owner, y, t, p, w in self.stacks:
+            u, term = _contrasts(y, t, p, rho, w if self.weighted else None)
+            np.add.at(self.terms, owner, term)
             for i, row in zip(owner, u):
                 parts[i].append(row)
-        return [np.concatenate(x) if x else np.zeros(0) for x in parts], total
+        return [np.concatenate(x) if x else np.zeros(0) for x in parts], float(self.terms.sum())
 
 
 def fit_noise(series: list[NoiseSeries], rho: float | None = None,
@@ -406,7 +416,7 @@ def fit_noise(series: list[NoiseSeries], rho: float | None = None,
     labels = list(range(len(series))) if groups is None else list(groups)
     if rho is not None:
         per, _ = chunks.at(float(rho))
-        return NoiseFit(_levels(per), float(rho), tuple(per))
+        return NoiseFit(_levels(per), float(rho), tuple(per), terms=tuple(chunks.terms))
     scale = None
     objective, fits = [], []
     for r in RHO_GRID:
@@ -471,35 +481,6 @@ def estimate_noise(series: list[np.ndarray], rho: float | None = None
     correlation: :func:`fit_noise` on plain arrays. NaN for a series too short to estimate."""
     fit = fit_noise([NoiseSeries(np.asarray(s, float)) for s in series], rho)
     return list(fit.sigma), fit.rho
-
-
-def censored_sigma(values: np.ndarray, bound: float = 0.0) -> float:
-    """Noise level of a series clipped at ``bound`` (the water cut of a dry well, its noise
-    clipped at 0) about a level that does not move: the maximum-likelihood sigma of a normal
-    law censored at ``bound`` (a Tobit model), profiled over ``mu / sigma`` on a grid. NaN
-    when fewer than 3 values are above the bound."""
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)] - bound
-    x = v[v > 1e-12]
-    n0, n1 = int(v.size - x.size), int(x.size)
-    if n1 < 3:
-        return float("nan")
-    nd = NormalDist()
-    sx, sxx = float(x.sum()), float((x * x).sum())
-    best = (-math.inf, float("nan"))
-    for k in np.linspace(-3.0, 3.0, 241):
-        s = (k * sx + math.sqrt(k * k * sx * sx + 4.0 * sxx * n1)) / (2.0 * sxx)  # 1 / sigma
-        loglik = n1 * math.log(s) - 0.5 * (s * s * sxx - 2 * k * s * sx + k * k * n1)
-        if n0:
-            loglik += n0 * math.log(max(nd.cdf(-k), 1e-300))
-        if loglik > best[0]:
-            best = (loglik, 1.0 / s)
-    return float(best[1])
-
-
-CENSORED_SHARE = 0.15
-"""A segment with at least this share of its values exactly at 0 is read as noise clipped
-there (:func:`censored_sigma`)."""
 
 
 def breakthrough_index(values: np.ndarray, threshold: float, persist: int = 2) -> int | None:

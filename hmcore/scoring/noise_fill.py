@@ -11,7 +11,7 @@ cannot be estimated; and a floor, never above the signal it would hide.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -19,15 +19,12 @@ import pandas as pd
 from hmcore.model.noise_section import NoiseSection, QuantityNoise
 from hmcore.scoring.noise import (
     AFTER_BREAKTHROUGH_DEFAULT,
-    CENSORED_SHARE,
     FLOOR_SIGNAL_SHARE,
     GAS_BREAKTHROUGH_RATIO,
     MAX_RHO,
-    MIN_CONTRASTS,
     OIL_RATE_SIGMA_MIN,
     OIL_RATE_SIGMA_REL,
     RATE_STEP,
-    RELATIVE_MARGIN,
     SHRINK_CONTRASTS,
     SIGMA_FLOOR,
     UNCERTAIN_FACTOR,
@@ -35,17 +32,32 @@ from hmcore.scoring.noise import (
     NoiseFit,
     NoiseSeries,
     breakthrough_index,
-    censored_sigma,
     fit_noise,
     initial_gor,
     level_interval,
-    robust_mean_square,
     variogram_rho,
+)
+from hmcore.scoring.noise_scale import (
+    ABSOLUTE_NOISE,
+    CENSORED_SHARE,
+    RELATIVE_NOISE,
+    NoiseScale,
+    ScaleData,
+    censored_sigma,
+    choose_scale,
+    smoothed_level,
 )
 
 # ============================================================================ noise segments
 RELATIVE = ("WGOR", "WWPR", "WGPR")
-"""Quantities whose noise is relative to the value (estimated on the logarithm)."""
+"""Quantities whose noise is relative to the value unless the data say otherwise (estimated
+on the logarithm)."""
+
+
+SCALED = RELATIVE + ("WWCT",)
+"""Quantities whose noise may grow with their level: the scale (absolute, relative, relative
+with a minimum) is chosen from the data (:func:`hmcore.scoring.noise_scale.choose_scale`);
+the water cut's default is absolute."""
 
 
 QUIET = ("flowing", "before", "all")
@@ -141,6 +153,23 @@ def _series(df: pd.DataFrame, seg: _Segment, resid: np.ndarray | None, rel: bool
     return NoiseSeries(v, df.loc[idx, "days"].to_numpy(float), position[pos], run)
 
 
+def _level(df: pd.DataFrame, seg: _Segment) -> np.ndarray:
+    """The signal's level at each row of a segment, fitted and held-back rows on their own."""
+    return smoothed_level(df.loc[seg.idx, "observed"].to_numpy(float),
+                          (df.loc[seg.idx, "period"] == "fit").to_numpy())
+
+
+def _scale_data(df: pd.DataFrame, seg: _Segment, resid: np.ndarray | None, runs: np.ndarray,
+                position: np.ndarray) -> ScaleData:
+    """A segment's fitted rows on the value and on the logarithm, with the signal's level, for
+    the choice of the noise's scale."""
+    fitted = (df.loc[seg.idx, "period"] == "fit").to_numpy()
+    return ScaleData(_series(df, seg, resid, False, False, runs, position),
+                     _series(df, seg, resid, True, False, runs, position),
+                     _level(df, seg)[fitted],
+                     df.loc[seg.idx[fitted], "observed"].to_numpy(float))
+
+
 # ============================================================================ filling sigma
 @dataclass(frozen=True)
 class Filled:
@@ -163,9 +192,9 @@ class _Plan:
     known: bool
     rho: float | None
     entry: dict
-    rel: bool
-    relative_series: list[NoiseSeries] | None = None
-    """The water cut's series on the log scale: its noise may be relative to the value."""
+    scale: NoiseScale
+    data: list[ScaleData] | None = None
+    """The segments on the value and the logarithm, when the scale is chosen from the data."""
 
 
 def fill_sigma(df: pd.DataFrame, resid: np.ndarray | None = None,
@@ -233,9 +262,10 @@ def fill_sigma(df: pd.DataFrame, resid: np.ndarray | None = None,
         rel = q in RELATIVE
         series = [_series(df, s, resid, rel, known, runs, position) for s in segs]
         censored = [q == "WWCT" and not known and _censored(df, s) for s in segs]
-        logs = [_series(df, s, resid, True, False, runs, position) for s in segs] \
-            if q == "WWCT" and not known else None
-        plans.append(_Plan(q, segs, series, censored, known, q_rho, entry, rel, logs))
+        data = [_scale_data(df, s, resid, runs, position) for s in segs] \
+            if q in SCALED and not known else None
+        plans.append(_Plan(q, segs, series, censored, known, q_rho, entry,
+                           RELATIVE_NOISE if rel else ABSOLUTE_NOISE, data))
     joint = [(p, k) for p in plans if p.rho is None for k in range(len(p.segs))
              if not p.censored[k] and p.segs[k].kind in QUIET and p.q != "WWCT"]
     if not joint:
@@ -246,10 +276,14 @@ def fill_sigma(df: pd.DataFrame, resid: np.ndarray | None = None,
     for p in plans:
         r = p.rho if p.rho is not None else min(max(shared.rho if shared else 0.0, 0.0),
                                                 MAX_RHO)
-        if p.relative_series is not None and not any(p.censored) and \
-                _prefers_relative(df, p, r):
-            p.series, p.rel = p.relative_series, True
-        p.entry["noise_model"] = "relative" if p.rel else "absolute"
+        if p.data is not None:
+            keep = [k for k in range(len(p.segs)) if not p.censored[k]]
+            p.scale, p.entry["scale_scores"] = choose_scale([p.data[k] for k in keep], r,
+                                                            p.scale)
+            p.series = [s if c else d.series(p.scale)
+                        for s, d, c in zip(p.series, p.data, p.censored)]
+        p.entry |= p.scale.describe(1.0)
+        p.entry.pop("relative_min", None)
         fit = _fit_at(p, r)
         rho[p.q] = r
         p.entry["rho"] = r
@@ -258,7 +292,7 @@ def fill_sigma(df: pd.DataFrame, resid: np.ndarray | None = None,
             p.entry["rho_identified"] = shared.rho_identified
         if not p.known:
             p.entry["levels"], p.entry["uninformative"] = _fill_levels(
-                df, p.q, p.segs, fit, p.rel, inflow)
+                df, p.q, p.segs, fit, p.scale, inflow)
             ends = [_fit_at(p, x) for x in shared.rho_range] if (
                 p.rho is None and shared is not None and not shared.rho_identified) else []
             for lv in p.entry["levels"]:
@@ -299,34 +333,6 @@ def _fit_at(p: _Plan, rho: float) -> NoiseFit:
     for k, sg, u in zip(keep, fit.sigma, fit.contrasts):
         sigma[k], contrasts[k] = sg, u
     return NoiseFit(tuple(sigma), rho, tuple(contrasts))
-
-
-def _prefers_relative(df: pd.DataFrame, p: _Plan, rho: float) -> bool:
-    """Whether a water cut's noise reads as relative to its value: the restricted likelihood
-    of its segments on the log scale (with the Jacobian of the logarithm) beats the one on the
-    value's scale by :data:`RELATIVE_MARGIN`, on the same rows. Asked only when no segment is
-    clipped at 0 (a dry well's water cut of 0 is an absolute noise)."""
-    assert p.relative_series is not None
-    keep = [k for k in range(len(p.segs)) if not p.censored[k]]
-    logs = [p.relative_series[k] for k in keep]
-    plain = [replace(p.series[k], values=np.where(np.isfinite(logs[j].values),
-                                                  p.series[k].values, np.nan))
-             for j, k in enumerate(keep)]
-    fit_abs, fit_rel = fit_noise(plain, rho=rho), fit_noise(logs, rho=rho)
-    gain = 0.0
-    for j, k in enumerate(keep):
-        ua, ur = fit_abs.contrasts[j], fit_rel.contrasts[j]
-        if min(ua.size, ur.size) < MIN_CONTRASTS or ua.size != ur.size:
-            continue
-        va, vr = robust_mean_square(ua), robust_mean_square(ur)
-        if not (va > 0 and vr > 0):
-            continue
-        idx = p.segs[k].idx[(df.loc[p.segs[k].idx, "period"] == "fit").to_numpy()]
-        obs = df.loc[idx, "observed"].to_numpy(float)
-        rows = np.concatenate(logs[j].chunks())
-        jacobian = float(np.mean(np.log(obs[rows])))  # d log y / dy = 1 / y, per contrast
-        gain += 0.5 * ua.size * (math.log(va) - math.log(vr)) - ua.size * jacobian
-    return gain > RELATIVE_MARGIN
 
 
 def _standardized(df: pd.DataFrame, seg: _Segment, resid: np.ndarray | None) -> np.ndarray:
@@ -376,10 +382,12 @@ def _stated_rho(df: pd.DataFrame, q: str, stated: QuantityNoise | None, inflow: 
     return q_rho, own
 
 
-def _fill_levels(df: pd.DataFrame, q: str, segs: list[_Segment], fit: NoiseFit, rel: bool,
-                 inflow: np.ndarray) -> tuple[list[dict], list[str]]:
-    """Set the estimated sigma of every row of ``segs`` that has none; the levels and the wells
-    whose series are uninformative (see :func:`_floor`)."""
+def _fill_levels(df: pd.DataFrame, q: str, segs: list[_Segment], fit: NoiseFit,
+                 scale: NoiseScale, inflow: np.ndarray) -> tuple[list[dict], list[str]]:
+    """Set the estimated sigma of every row of ``segs`` that has none (``scale`` turns a level
+    into each row's sigma; a water cut clipped at 0 and the water cut's default after
+    breakthrough are absolute, GOR's default relative); the levels and the wells whose series
+    are uninformative (see :func:`_floor`)."""
     kinds: dict[str, list[int]] = {}
     for i, s in enumerate(segs):
         kinds.setdefault(s.kind, []).append(i)
@@ -402,27 +410,34 @@ def _fill_levels(df: pd.DataFrame, q: str, segs: list[_Segment], fit: NoiseFit, 
         if not math.isfinite(sig):
             sig, source, method = _fallback(q, s.kind, fit, kinds)
             count = pool if source == "pooled" else 0
-        if s.kind == "before":
+        row_scale = scale
+        if method == "censored" or (method == "default after breakthrough" and q == "WWCT"):
+            row_scale = ABSOLUTE_NOISE
+        elif method == "default after breakthrough":
+            row_scale = RELATIVE_NOISE
+        rel = row_scale.mode != "absolute"
+        if s.kind == "before" and row_scale == scale:
             own_before[s.well] = sig
-        elif s.kind == "after" and s.well in own_before and sig < own_before[s.well]:
+        elif s.kind == "after" and row_scale == scale and sig < own_before.get(s.well, 0.0):
             sig = own_before[s.well]
         floor, uninformative = _floor(df, q, s.well, rel, inflow, obs)
         if uninformative:
             flagged.add(s.well)
         if sig < floor:
             sig, source = floor, "floor"
-        if rel:
-            v = np.abs(df.loc[s.idx, "observed"].to_numpy(float))
-            least = 0.1 * float(np.median(np.abs(obs))) if obs.size else 0.0
-            sigma = np.maximum(sig * np.maximum(v, least), 1e-6)
+        if rel:  # a row whose level is 0 takes the segment's least positive level
+            level = _level(df, s)
+            positive = level[np.isfinite(level) & (level > 0)]
+            least = float(positive.min()) if positive.size else 0.0
+            sigma = np.maximum(row_scale.row_sigma(sig, np.fmax(level, least)), 1e-12)
         else:
             sigma = np.full(len(s.idx), sig)
         df.loc[s.idx[miss], "sigma"] = sigma[miss]
         df.loc[s.idx[miss], "sigma_source"] = source
         levels.append({"well": s.well, "segment": s.kind, "sigma": sig, "relative": rel,
-                       "n": len(s.idx), "source": source, "method": method,
-                       "contrasts": int(count), "uninformative": uninformative, "_k": i,
-                       "_kind": kinds[s.kind]})
+                       **row_scale.describe(sig), "n": len(s.idx), "source": source,
+                       "method": method, "contrasts": int(count),
+                       "uninformative": uninformative, "_k": i, "_kind": kinds[s.kind]})
     return levels, sorted(flagged)
 
 
@@ -471,7 +486,7 @@ def _floor(df: pd.DataFrame, q: str, well: str, rel: bool, inflow: np.ndarray,
     values = values[np.isfinite(values)]
     top = float(values.max()) if values.size else 0.0
     within = q in SIGMA_FLOOR and bool(values.size) and top <= SIGMA_FLOOR[q]
-    if rel:
+    if rel:  # a relative level: the gauge's relative resolution
         floor = SIGMA_FLOOR["WGOR_REL"] if q == "WGOR" else SIGMA_FLOOR["RATE_REL"]
         return floor, within or bool(values.size and top <= 0)
     seg = np.abs(segment[np.isfinite(segment)])

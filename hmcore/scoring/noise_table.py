@@ -40,9 +40,11 @@ def noise_table(obs: ObservationSet) -> pd.DataFrame:
     for (q, seg, well), g in rows.groupby(["quantity", "segment", "well"], sort=False):
         source = g.sigma_source.value_counts().index[0]
         share = (g.sigma / g.observed.abs().where(g.observed != 0)).median()
+        level = levels.get((q, well, seg), {})
         relative = q in RELATIVE or source == "rate" or (
             source == "stated" and _stated_mode(obs, q, str(well)) in ("REL", "RELMIN"))
-        level = levels.get((q, well, seg), {})
+        if source == level.get("source") and "relative" in level:
+            relative = bool(level["relative"])  # the scale the data chose (noise_scale)
         low, high = level.get("sigma_range", (float("nan"), float("nan")))
         out.append({"quantity": q, "segment": seg, "well": well, "source": source,
                     "sigma": float(g.sigma.median()),
