@@ -215,6 +215,25 @@ def test_the_bhp_and_a_level_that_does_not_span_decades_keep_their_absolute_nois
     assert 2 / FACTOR < bhp.sigma.median() < 2 * FACTOR
 
 
+def test_a_gor_with_a_constant_noise_over_decades_is_read_absolute():
+    """GOR's default is relative; a constant noise of 20 on a GOR rising from 100 to 10,000
+    is absolute (its floor then 1 % of the segment's typical value)."""
+    rng = np.random.default_rng(4)
+    days = 30.4 * np.arange(1, 97)
+    rows = []
+    for well in ("A", "B", "C"):
+        gor = 100.0 * 100 ** (days / days[-1])
+        rows += [pd.DataFrame({"well": well, "days": days, "quantity": "WOPR", "value": 100.0,
+                               "flowing": True}),
+                 pd.DataFrame({"well": well, "days": days, "quantity": "WGOR",
+                               "value": gor + 20.0 * rng.standard_normal(days.size),
+                               "flowing": True})]
+    obs = ObservationSet.from_observed(pd.concat(rows, ignore_index=True), 2200.0)
+    assert obs.noise_report["WGOR"]["noise_model"] == "absolute", obs.noise_report["WGOR"]
+    gor = obs.rows[(obs.rows.quantity == "WGOR") & (obs.rows.period == "fit")]
+    assert 20 / FACTOR < gor.sigma.median() < 20 * FACTOR
+
+
 def _series(rng: np.random.Generator, level: np.ndarray, sigma: np.ndarray) -> ScaleData:
     y = level + sigma * rng.standard_normal(level.size)
     log = np.log(np.where(y > 0, y, np.nan))

@@ -493,7 +493,7 @@ def _floor(df: pd.DataFrame, q: str, well: str, rel: bool, inflow: np.ndarray,
     typical = float(np.median(seg)) if seg.size else 0.0
     if typical <= 0:
         typical = float(seg.max()) if seg.size else 0.0
-    floor = SIGMA_FLOOR[q]
+    floor = SIGMA_FLOOR.get(q, math.inf)  # GOR or a rate read as absolute: its share only
     if typical > 0:
         floor = min(floor, FLOOR_SIGNAL_SHARE * typical)
-    return floor, within
+    return (floor if math.isfinite(floor) else 0.0), within
