@@ -23,6 +23,7 @@ from hmcore.fields.spec import FieldSpec
 from hmcore.scenarios.field_truth import (
     FIELD_KIND,
     TRUTH_JSON,
+    QuantityCheck,
     distinct_words,
     draw_truth,
     files_problems,
@@ -49,7 +50,7 @@ FIELDS = (
         "name": "poro", "keyword": "PORO", "low": 0.05, "high": 0.35,
         "prior": {"source": "geostatistical", "seed": 11,
                   "variogram": {"model": "spherical", "ranges": [800.0, 400.0, 10.0],
-                                "azimuth": [20.0, 60.0]},
+                                "azimuth": 30.0},
                   "zones": [{"layers": [k, k], "mean": m, "std": 0.03}
                             for k, m in ((1, 0.2), (2, 0.15), (3, 0.22))]}}),
     FieldSpec.model_validate({
@@ -60,7 +61,7 @@ FIELDS = (
 
 
 def test_the_truth_is_none_of_the_members_and_reproducible_for_its_seed():
-    members = draw_prior(FIELDS, GRID, 60)  # the members of any ensemble of the case: 0..59
+    members = draw_prior(FIELDS, GRID, 40)  # the members of any ensemble of the case: 0..39
     truth = draw_truth(FIELDS, GRID, ("skin",), ensemble_seed=0, seed=3)
     again = draw_truth(FIELDS, GRID, ("skin",), ensemble_seed=0, seed=3)
     other = draw_truth(FIELDS, GRID, ("skin",), ensemble_seed=0, seed=4)
@@ -136,7 +137,8 @@ def stored(tmp_path):
     table = pd.DataFrame([forecast_row("prior", "FIELD", "FOPT", 80.0, 120.0),
                           forecast_row("posterior", "FIELD", "FOPT", 101.0, 110.0, 3),
                           forecast_row("prior", "PRO1", "WOPT", 10.0, 90.0),
-                          forecast_row("posterior", "PRO1", "WOPT", 45.0, 55.0, 3)])
+                          forecast_row("posterior", "PRO1", "WOPT", 45.0, 55.0, 3),
+                          forecast_row("posterior", "FIELD", "FGPT", 5.0, 6.0, 3)])
     store.put_files("e", FORECAST_STEP, {}, {"forecast.parquet": table}, "test")
     hidden = tmp_path / "hidden"
     hidden.mkdir()
@@ -146,6 +148,7 @@ def stored(tmp_path):
                                       {"name": "permx", "keyword": "PERMX", "space": "log10"}],
            "forecast": [{"well": "FIELD", "quantity": "FOPT", "value": 100.0},
                         {"well": "FIELD", "quantity": "FWPT", "value": 7.0},
+                        {"well": "FIELD", "quantity": "FGPT", "value": float("nan")},
                         {"well": "PRO1", "quantity": "WOPT", "value": 50.0}]}
     (hidden / TRUTH_JSON).write_text(json.dumps(doc))
     return tmp_path / "store", hidden / TRUTH_JSON
@@ -157,7 +160,8 @@ def test_reveal_judges_the_bands_and_the_mean_fields_from_the_store(stored):
     assert r.posterior_iteration == 2
     assert [(c.ensemble, c.well, c.quantity, c.inside) for c in r.checks] == [
         ("prior", "FIELD", "FOPT", True), ("posterior", "FIELD", "FOPT", False),
-        ("prior", "PRO1", "WOPT", True), ("posterior", "PRO1", "WOPT", True)]
+        ("prior", "PRO1", "WOPT", True), ("posterior", "PRO1", "WOPT", True)]  # no FWPT band,
+    # and no truth of FGPT (NaN): judged only where the forecast and the truth both have it
     assert not r.fopt_inside and r.check("posterior", "FIELD", "FOPT").members == 3
     errors = {e.field: e for e in r.errors}
     assert errors["poro"].prior == pytest.approx(0.05, abs=1e-6)
@@ -165,6 +169,16 @@ def test_reveal_judges_the_bands_and_the_mean_fields_from_the_store(stored):
     assert errors["permx"].prior == pytest.approx(0.5, abs=1e-6)
     assert errors["permx"].posterior == pytest.approx(0.1, abs=1e-6)
     assert errors["permx"].space == "log10"
+
+
+def test_a_band_of_one_value_holds_a_truth_equal_to_it_within_the_simulators_convergence():
+    """A well held at its rate control: every member and the truth give the same cumulative
+    oil up to the simulator's convergence (6e-6 of the value measured on the small case)."""
+    band = {"ensemble": "posterior", "well": "PROD1", "quantity": "WOPT", "P90": 210799.75,
+            "P50": 210799.9, "P10": 210799.99, "members": 16}
+    assert QuantityCheck(truth=210798.96, **band).inside  # 3.7e-6 below P90
+    assert not QuantityCheck(truth=210790.0, **band).inside  # 4.6e-5 below
+    assert QuantityCheck(truth=210798.96, **band).width == pytest.approx(1.14e-6, rel=0.01)
 
 
 @pytest.fixture
@@ -192,7 +206,8 @@ def test_the_reveal_command_prints_the_verdict_and_refuses_bad_input(stored, res
     out, text = invoke(["reveal", "--hidden", str(hidden), "--campaign", "e", "--storage",
                         str(storage)])
     assert out.exit_code == 1, text  # the truth's FOPT is outside the posterior's band
-    assert "posterior FIELD FOPT: truth 100, P90/P50/P10 101/105.5/110 (3 members) outside" in text
+    assert ("posterior FIELD FOPT: truth 100, P90/P50/P10 101/105.5/110 (3 members, 8.5% wide) "
+            "outside") in text
     assert "prior: 2 of 2 quantities inside P10-P90" in text
     assert "posterior: 1 of 2 quantities inside P10-P90" in text
     assert "field poro (value): RMSE of the mean to the truth, prior 0.05 -> posterior 0.01" in text

@@ -169,10 +169,11 @@ def _reveal_field(hidden: Path, storage: Path, campaign: str) -> None:
     console.print(f"ensemble {campaign} against the truth of {hidden} (P90 <= truth <= P10):",
                   highlight=False)
     for c in r.checks:
-        mark = "[green]inside[/]" if c.inside else "[red]outside[/]"
+        mark = ("[green]inside[/]" if c.inside else "[red]outside[/]") + (
+            " (one value: the wells' controls fix it, not the fields)" if c.width < 1e-4 else "")
         console.print(f"  {c.ensemble:9s} {c.well} {c.quantity}: truth {c.truth:.5g}, "
-                      f"P90/P50/P10 {c.P90:.5g}/{c.P50:.5g}/{c.P10:.5g} ({c.members} members) "
-                      f"{mark}", highlight=False, soft_wrap=True)
+                      f"P90/P50/P10 {c.P90:.5g}/{c.P50:.5g}/{c.P10:.5g} ({c.members} members, "
+                      f"{c.width:.1%} wide) {mark}", highlight=False, soft_wrap=True)
     for e in ("prior", "posterior"):
         n = sum(c.inside for c in r.checks if c.ensemble == e)
         total = sum(c.ensemble == e for c in r.checks)
