@@ -227,7 +227,11 @@ def test_hmflow_report_rebuilds_the_ensembles_report_with_no_simulator_call(run,
     assert run["log"].read_text() == before
     version = run["store"].latest("e", REPORT_STEP)
     assert "report.html" in out and "posterior" in out and version.verify() == []
-    assert version.version == 1  # the same run and code: the stored report, reused
+    first = run["store"].get("e", REPORT_STEP, 1)
+    assert version.manifest["inputs_hash"] == first.manifest["inputs_hash"]
+    # the same run and code: the stored report, reused (a commit made meanwhile is new code)
+    same_code = version.manifest["code_version"] == first.manifest["code_version"]
+    assert version.version == (1 if same_code else 2)
 
 
 def test_too_few_members_left_stops_the_iteration_with_one_line(tmp_path, small_case,

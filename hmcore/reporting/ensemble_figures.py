@@ -87,6 +87,7 @@ def well_ensembles(well: str, observed: pd.DataFrame, curves: pd.DataFrame,
     rows = 2 if len(panels) > 3 else 1
     fig = Figure(figsize=(13, 6.6 if rows == 2 else 3.8))
     axes = fig.subplots(rows, 3, sharex=True, squeeze=False)
+    fig.subplots_adjust(wspace=0.3)
     for ax in axes.flat[len(panels):]:
         ax.set_visible(False)
     for ax, (q, title) in zip(axes.flat, panels):
@@ -172,6 +173,7 @@ def forecast_fans(curves: pd.DataFrame, targets: Sequence[tuple[str, str, str]],
     rows = math.ceil(len(targets) / cols)
     fig = Figure(figsize=(4.6 * cols, 3.4 * rows + 0.4))
     axes = fig.subplots(rows, cols, squeeze=False)
+    fig.subplots_adjust(hspace=0.45, wspace=0.35)
     for ax in axes.flat[len(targets):]:
         ax.set_visible(False)
     for ax, (well, q, title) in zip(axes.flat, targets):
