@@ -12,6 +12,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pandas as pd
 import pytest
+from matplotlib.figure import Figure
 
 from hmcore.fields.forecast import ensemble_forecast
 from hmcore.fields.grdecl import write_grdecl
@@ -27,6 +28,7 @@ from hmcore.reporting.ensemble import (
     to_layers,
 )
 from hmcore.reporting.ensemble_truth import FieldTruth, read_truth, truth_curves
+from hmcore.reporting.figures import png
 
 DIMS = (3, 2, 2)  # nx, ny, nz
 ACTIVE = np.array([0, 1, 2, 3, 4, 6, 7, 8, 9, 10, 11])  # cell 5 (i=3, j=2, k=1) inactive
@@ -136,9 +138,21 @@ def png_pixels(data: bytes) -> np.ndarray:
 
 
 def drawn(data: bytes) -> bool:
-    """A PNG with drawing on it: many colours, not one plain background."""
-    pixels = png_pixels(data)[..., :3].reshape(-1, 3)
-    return len(np.unique(np.round(pixels, 2), axis=0)) > 20
+    """A PNG with data drawn on it: more than 0.2 % of its pixels in a strong colour (axes,
+    text, grid lines and the shaded periods are grey or pale; every series is coloured)."""
+    rgb = png_pixels(data)[..., :3]
+    return float(((rgb.max(axis=-1) - rgb.min(axis=-1)) > 0.25).mean()) > 0.002
+
+
+def test_empty_axes_are_not_drawn():
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
+    ax.set_title("nothing here")
+    ax.axvspan(0.6, 0.9, color="#f3e9d2")  # the held-back shading alone is no data
+    ax.grid(alpha=0.3)
+    assert not drawn(png(fig))
+    ax.plot([0, 1], [0, 1], color="#1f5fbf", lw=2)
+    assert drawn(png(fig))
 
 
 def test_every_figure_is_drawn_and_on_the_page_with_the_truth_table():
