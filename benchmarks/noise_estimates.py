@@ -224,7 +224,10 @@ def compare(obs_true: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
     out = []
     for (q, seg), g in rows.groupby(["quantity", "segment"]):
         ok = g[~g.flagged]
+        p10, p90 = np.percentile(g.ratio, [10, 90]) if len(g) else (np.nan, np.nan)
         out.append({"quantity": q, "segment": seg, "n": len(g), "flagged": int(g.flagged.sum()),
+                    "ratio_all": float(g.ratio.median()) if len(g) else float("nan"),
+                    "p10": float(p10), "p90": float(p90),
                     "default": int((ok.sigma_source == "default").sum()),
                     "covered": int(ok.covered.sum()),
                     "ratio": float(ok.ratio.median()) if len(ok) else float("nan"),
@@ -276,7 +279,8 @@ def markdown(summary: pd.DataFrame) -> str:
     worst seed's and the verdict; then the same from the residuals against the truth."""
     def cell(r: pd.Series, med: str, worst: str, verdict: str | None) -> str:
         if verdict == "flagged":
-            return "flagged"
+            return f"flagged {r[med + '_all']:.2f} ({r[worst + '_all']:.2f})" \
+                if med + "_all" in r and np.isfinite(r[med + "_all"]) else "flagged"
         text = f"{r[med]:.2f} ({r[worst]:.2f})"
         return text if verdict is None or verdict == "ok" else f"{text} {verdict}"
 
@@ -303,6 +307,21 @@ def markdown(summary: pd.DataFrame) -> str:
             out.append(f"| {t} | {g} | x{lv:g} | {part[rho].median():.2f} | "
                        + " | ".join(cells) + " |")
         out.append("")
+    out += [("**spread over rows: 10th-90th percentile of estimated / true sigma over the "
+             "fitted rows (flagged ones too), lowest and highest over seeds**"), "",
+            "| truth | generator | level | " + " | ".join(
+                f"{q[1:]} {s}" for q, s in SEGMENTS if q != "WBHP") + " |",
+            "|" + "---|" * (3 + len(SEGMENTS) - 2)]
+    for (t, g, lv), part in summary.groupby(["truth", "generator", "level"], sort=False):
+        cells = []
+        for q, sg in SEGMENTS:
+            if q == "WBHP":
+                continue
+            row = part[(part.quantity == q) & (part.segment == sg)]
+            cells.append("-" if row.empty or not np.isfinite(row.iloc[0].p10) else
+                         f"{row.iloc[0].p10:.2g}-{row.iloc[0].p90:.2g}")
+        out.append(f"| {t} | {g} | x{lv:g} | " + " | ".join(cells) + " |")
+    out.append("")
     return "\n".join(out)
 
 
@@ -318,7 +337,9 @@ def summarise(res: pd.DataFrame) -> pd.DataFrame:
         return float(r.iloc[np.argmax(np.abs(np.log(r)))]) if len(r) else float("nan")
 
     g = res.groupby(["truth", "generator", "level", "quantity", "segment"], sort=False)
-    out = g.agg(median=("ratio", "median"), worst=("ratio", worst), n=("n", "median"),
+    extra = {"median_all": ("ratio_all", "median"), "worst_all": ("ratio_all", worst),
+             "p10": ("p10", "min"), "p90": ("p90", "max")} if "p10" in res else {}
+    out = g.agg(median=("ratio", "median"), worst=("ratio", worst), n=("n", "median"), **extra,
                 flagged=("flagged", "median"), default=("default", "median"),
                 covered=("covered", "min"),
                 rho=("rho", "median"), refined=("refined", "median"),

@@ -247,7 +247,8 @@ def choose_scale(data: list[ScaleData], rho: float, default: NoiseScale
     else:
         chosen = min(supported, key=shortfall.__getitem__)
     base = costs[default]
-    scores = {f"{s.mode} {s.space} {s.knee:.3g}": round(c - base, 2) for s, c in costs.items()}
+    scores = {f"{s.mode} {s.space} {s.knee:.3g}": round(float(c - base), 2)
+              for s, c in costs.items()}
     return chosen, scores
 
 
