@@ -187,20 +187,34 @@ def laplace_cost(fit: NoiseFit, jacobian: list[float]) -> tuple[float, int]:
     return total, n
 
 
-def row_sigmas(scale: NoiseScale, fit: NoiseFit, data: list[ScaleData]) -> np.ndarray:
-    """The sigma ``scale`` gives every fitted row of ``data`` from the levels of ``fit`` (a
-    series without its own level takes the level pooled over all; a row whose level is 0 the
-    series' least positive level)."""
-    pooled = fit.pooled(range(len(data)))
-    out = [np.zeros(0)]
-    for level, d in zip(fit.sigma, data):
-        level = level if math.isfinite(level) and level > 0 else pooled
+def unseen_levels(data: list[ScaleData]) -> list[np.ndarray]:
+    """Per series, the levels of its fitted rows that no contrast sees: outside the range of
+    the levels of the rows in any series' chunks, widened by :data:`SHORTFALL` (PUNQ-S3's
+    water cut: its contrasts all in the first year, 1e-6 to 7e-6; a rise to 0.04 unseen)."""
+    seen = [np.abs(np.asarray(d.level, float))[np.concatenate(c)]
+            for d in data if (c := d.log.chunks())]
+    seen = np.concatenate(seen) if seen else np.zeros(0)
+    seen = seen[np.isfinite(seen) & (seen > 0)]
+    out = []
+    for d in data:
         m = np.abs(np.asarray(d.level, float))
-        m = m[np.isfinite(m)]
+        m = m[np.isfinite(m) & (m > 0)]
+        if seen.size:
+            m = m[(m < seen.min() / SHORTFALL) | (m > seen.max() * SHORTFALL)]
+        out.append(m)
+    return out
+
+
+def row_sigmas(scale: NoiseScale, fit: NoiseFit, levels: list[np.ndarray]) -> np.ndarray:
+    """The sigma ``scale`` gives rows of the signal's levels ``levels`` (per series, positive)
+    from the levels of ``fit`` (a series without its own level takes the level pooled over
+    all)."""
+    pooled = fit.pooled(range(len(levels)))
+    out = [np.zeros(0)]
+    for level, m in zip(fit.sigma, levels):
+        level = level if math.isfinite(level) and level > 0 else pooled
         if m.size and math.isfinite(level):
-            positive = m[m > 0]
-            out.append(scale.row_sigma(level, np.fmax(m, positive.min() if positive.size
-                                                      else 1e-300)))
+            out.append(scale.row_sigma(level, m))
     return np.concatenate(out)
 
 
@@ -212,13 +226,15 @@ def choose_scale(data: list[ScaleData], rho: float, default: NoiseScale
     Every scale is judged on the same rows (those with a positive value) at correlation
     ``rho`` (:func:`laplace_cost`; a knee pays :data:`KNEE_COST` times the log of the number
     of contrasts). The scales within :data:`SCALE_MARGIN` of the best are those the data
-    support; their sigmas may differ most on rows with no contrast (a water cut of 1e-6 in the
-    monthly first year, of 0.04 in the 3-row runs of the last), where an absolute level read
-    from the first year puts the last rows thousands of sigma away if the noise is relative,
-    and a relative one the first rows if it is absolute. So among the supported scales the
-    one chosen is never far below any other on any row of the segments: the default if no
-    supported scale exceeds it on a row by more than :data:`SHORTFALL`, else the cheapest that
-    none exceeds by more, else the one exceeded least."""
+    support. Where some rows are of a level no contrast sees (:func:`unseen_levels`: a water
+    cut of 0.04 in PUNQ-S3's 3-row runs when every contrast is from the first year, at 1e-6
+    to 7e-6), their sigmas may differ most there: an absolute level read from the first year
+    puts the last rows thousands of sigma away if the noise is relative, and a relative one
+    the first rows if it is absolute. Then the one chosen is never far below another
+    supported one on any row: the default if none exceeds it on a row by more than
+    :data:`SHORTFALL`, else the likeliest that none exceeds by more, else the one exceeded
+    least. Where the contrasts see every level: the default if supported, else the
+    likeliest."""
     if not data:
         return default, {}
     jac = [d.jacobian() for d in data]
@@ -235,7 +251,12 @@ def choose_scale(data: list[ScaleData], rho: float, default: NoiseScale
         return default, {}
     best = min(costs.values())
     supported = [s for s, c in costs.items() if c <= best + SCALE_MARGIN]
-    sigmas = {s: row_sigmas(s, fits[s], data) for s in supported}
+    if any(m.size for m in unseen_levels(data)):
+        levels = [np.abs(np.asarray(d.level, float)) for d in data]
+        levels = [m[np.isfinite(m) & (m > 0)] for m in levels]
+    else:
+        levels = [np.zeros(0) for _ in data]
+    sigmas = {s: row_sigmas(s, fits[s], levels) for s in supported}
     top = np.max(np.stack([sigmas[s] for s in supported]), axis=0)
     shortfall = {s: float(np.max(top / sigmas[s])) if sigmas[s].size else 1.0
                  for s in supported}
