@@ -211,7 +211,8 @@ def fill_sigma(df: pd.DataFrame, resid: np.ndarray | None = None,
     the variogram of the standardized series (:func:`hmcore.scoring.noise.variogram_rho`).
     A segment too short to estimate takes the level pooled over its kind in the other wells;
     an after-breakthrough segment that none can estimate takes
-    :data:`AFTER_BREAKTHROUGH_DEFAULT` (and never less than the well's own level before
+    :data:`AFTER_BREAKTHROUGH_DEFAULT` (and, on the quantity's default scale, never less
+    than the well's own level before
     breakthrough); a shut-in BHP segment with no estimate the flowing level.
     """
     context = df if context is None else context
@@ -418,7 +419,9 @@ def _fill_levels(df: pd.DataFrame, q: str, segs: list[_Segment], fit: NoiseFit,
         rel = row_scale.mode != "absolute"
         if s.kind == "before" and row_scale == scale:
             own_before[s.well] = sig
-        elif s.kind == "after" and row_scale == scale and sig < own_before.get(s.well, 0.0):
+        elif s.kind == "after" and row_scale == scale == (
+                RELATIVE_NOISE if q in RELATIVE else ABSOLUTE_NOISE) and \
+                sig < own_before.get(s.well, 0.0):  # on the default scale only
             sig = own_before[s.well]
         floor, uninformative = _floor(df, q, s.well, rel, inflow, obs)
         if uninformative:
