@@ -267,3 +267,19 @@ def test_a_scale_turns_a_level_into_each_rows_sigma():
     assert NoiseScale("log", 1e-4).describe(0.03)["relative_min"] == pytest.approx(3e-6)
     assert np.allclose(smoothed_level([1.0, 2.0, 100.0, 4.0, 5.0, 6.0]),
                        [2.0, 3.0, 4.0, 5.0, 5.5, 5.0])
+
+
+def test_contrasts_take_rows_of_weight_zero():
+    """A row whose level is 0 (a shut-in rate read relative) has weight 0: its chunk's least
+    positive weight stands in, so the covariance stays definite (SPE9's `hmflow init` failed
+    on it with "Matrix is not positive definite"); a chunk of zeros only is unweighted."""
+    from hmcore.scoring.noise import _contrasts
+
+    rng = np.random.default_rng(0)
+    y = rng.normal(size=(3, 6))
+    t = np.tile(np.arange(6.0), (3, 1))
+    w = np.array([[0.0, 0.0, 2.0, 3.0, 4.0, 5.0], [0.0] * 6, [1.0] * 6])
+    u, term = _contrasts(y, t, t, 0.85, w)
+    assert u.shape == (3, 4) and np.isfinite(u).all() and np.isfinite(term).all()
+    same, _ = _contrasts(y[1:2], t[1:2], t[1:2], 0.85, None)
+    np.testing.assert_allclose(u[1], same[0])

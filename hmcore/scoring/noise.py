@@ -286,7 +286,9 @@ def _contrasts(y: np.ndarray, t: np.ndarray, p: np.ndarray, rho: float,
     k, n = y.shape
     lag = np.abs(p[:, :, None] - p[:, None, :])
     cov = rho ** lag if rho > 0 else np.broadcast_to(np.eye(n), (k, n, n))
-    if w is not None:
+    if w is not None:  # a row of weight 0 (a level of 0) takes its chunk's least positive one
+        least = np.where(w > 0, w, np.inf).min(axis=1, keepdims=True)
+        w = np.where(w > 0, w, np.where(np.isfinite(least), least, 1.0))
         cov = cov * w[:, :, None] * w[:, None, :]
     chol = np.linalg.cholesky(cov)
     tc = t - t.mean(axis=1, keepdims=True)
