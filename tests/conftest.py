@@ -301,6 +301,19 @@ def prefect_server(tmp_path_factory) -> Iterator[dict]:
         yield server
 
 
+@pytest.fixture
+def restore_env():
+    """In-process CLI calls set hmflow's Prefect defaults in os.environ (and mark the process
+    quieted): undo both afterwards."""
+    import hmflow.console as term  # here, not at the top: the worker's env is set first (above)
+
+    saved, quieted = dict(os.environ), term._quieted
+    yield
+    os.environ.clear()
+    os.environ.update(saved)
+    term._quieted = quieted
+
+
 def cli_env(api_url: str, **extra: str) -> dict[str, str]:
     """This process's environment for an `hmflow` subprocess that uses the session's Prefect
     server (:func:`prefect_api`) instead of starting its own, plus ``extra``."""

@@ -66,18 +66,6 @@ def test_python_m_hmflow_cli_is_the_hmflow_command(tmp_path):
         assert f" {command} " in p.stdout, command
 
 
-@pytest.fixture
-def restore_env():
-    """In-process commands set hmflow's Prefect defaults in os.environ: undo them afterwards."""
-    import hmflow.console as term
-
-    saved, quieted = dict(os.environ), term._quieted
-    yield
-    os.environ.clear()
-    os.environ.update(saved)
-    term._quieted = quieted
-
-
 def _invoke(args: list[str]):
     from hmflow.cli import app
 

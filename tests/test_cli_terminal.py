@@ -39,17 +39,6 @@ def clean_env() -> dict:
                          term.CONSOLE_LEVEL_VAR)}
 
 
-@pytest.fixture
-def restore_env(monkeypatch):
-    """In-process CLI calls set hmflow's Prefect defaults in os.environ: undo them afterwards."""
-    saved = dict(os.environ)
-    quieted = term._quieted
-    yield
-    os.environ.clear()
-    os.environ.update(saved)
-    term._quieted = quieted
-
-
 # ------------------------------------------------------------------ real OPM, real Prefect
 @pytest.mark.opm
 def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_path, small_case,

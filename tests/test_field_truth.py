@@ -7,7 +7,6 @@ run from hand-made stored artifacts laid out as the ensemble flow stores them
 from __future__ import annotations
 
 import json
-import os
 
 import numpy as np
 import pandas as pd
@@ -179,18 +178,6 @@ def test_a_band_of_one_value_holds_a_truth_equal_to_it_within_the_simulators_con
     assert QuantityCheck(truth=210798.96, **band).inside  # 3.7e-6 below P90
     assert not QuantityCheck(truth=210790.0, **band).inside  # 4.6e-5 below
     assert QuantityCheck(truth=210798.96, **band).width == pytest.approx(1.14e-6, rel=0.01)
-
-
-@pytest.fixture
-def restore_env():
-    """In-process commands set hmflow's Prefect defaults in os.environ: undo them afterwards."""
-    import hmflow.console as term
-
-    saved, quieted = dict(os.environ), term._quieted
-    yield
-    os.environ.clear()
-    os.environ.update(saved)
-    term._quieted = quieted
 
 
 def invoke(args: list[str]):

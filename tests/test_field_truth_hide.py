@@ -6,7 +6,6 @@ the whole schedule through the members' INCLUDE, and the files of the hidden cas
 from __future__ import annotations
 
 import json
-import os
 
 import numpy as np
 import pandas as pd
@@ -23,18 +22,6 @@ from hmcore.scoring.observations import ObservationSet
 from hmcore.simulation.curves import FIELD, read_curves, value_at_end
 
 pytestmark = [pytest.mark.opm]
-
-
-@pytest.fixture
-def restore_env():
-    """In-process commands set hmflow's Prefect defaults in os.environ: undo them afterwards."""
-    import hmflow.console as term
-
-    saved, quieted = dict(os.environ), term._quieted
-    yield
-    os.environ.clear()
-    os.environ.update(saved)
-    term._quieted = quieted
 
 
 def invoke(args: list[str]):
