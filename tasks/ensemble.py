@@ -211,6 +211,7 @@ def update_step(case: Case, setup: EnsembleSetup, ensemble: ArtifactVersion,
         _write_doc(directory, {"iteration": iteration + 1, "members": int(X.shape[0]),
                                "active": np.flatnonzero(result.active).tolist(),
                                "left_out_now": list(result.left_out), "alpha": result.alpha,
+                               "constant_data": list(result.constant),
                                "batches": result.batches,
                                "update_seconds": round(result.seconds, 4),
                                **_layout_doc(setup.layout)})
@@ -248,7 +249,8 @@ def forecast_step(case: Case, observations: ObservationSet, storage: str, campai
     doc = {"iterations": [iteration_summary(i, planned[i], scored[i])
                           for i in range(iterations + 1)],
            "updates": [{k: u.get(k) for k in ("iteration", "alpha", "left_out_now",
-                                              "update_seconds", "batches")} for u in updates],
+                                              "constant_data", "update_seconds",
+                                              "batches")} for u in updates],
            "runs": sum(len(r) for r in rounds.values()),
            "failed": sum(1 for r in rounds.values() for x in r.values()
                          if x.get("status") == "FAIL"),

@@ -26,6 +26,7 @@ from hmcore.fields.grid import read_grid
 from hmcore.fields.layout import Layout
 from hmcore.fields.members import INCLUDE_NAME, ensemble_matrix
 from hmcore.fields.transform import to_physical
+from hmcore.scenarios.synthetic_fields import FIELDS
 from storage import ArtifactStore, EvaluationJournal
 from storage.ensemble import (
     ENSEMBLE_FILE,
@@ -44,30 +45,6 @@ name=$(basename "$2")
 echo "$name" >> "$4"
 case "$name" in $5) echo "injected failure of $name" >&2; exit 7;; esac
 exec "$3" -m hmcore.simulation.opm_runner "$1" "$2"
-"""
-FIELDS = """
-[[parameters]]
-name = "poro"
-kind = "field"
-keyword = "PORO"
-low = 0.05
-high = 0.35
-[parameters.prior]
-source = "geostatistical"
-seed = 11
-variogram = { model = "spherical", ranges = [1200.0, 800.0, 2.0], azimuth = 30.0 }
-zones = [{ layers = [1, 1], mean = 0.2, std = 0.03 }, { layers = [2, 2], mean = 0.22, std = 0.03 },
-         { layers = [3, 3], mean = 0.19, std = 0.03 }, { layers = [4, 4], mean = 0.22, std = 0.03 },
-         { layers = [5, 5], mean = 0.16, std = 0.03 }]
-
-[[parameters]]
-name = "permx"
-kind = "field"
-keyword = "PERMX"
-copies = ["PERMY"]
-low = 0.5
-high = 5000.0
-prior = { source = "relation", from = "poro", intercept = -0.9, slope = 12.6, scatter = 0.2, seed = 12 }
 """
 
 

@@ -89,9 +89,11 @@ def test_action_value_round_trip():
 def test_sb3_sac_learns_on_the_env_with_learn():
     """The reference route: SB3's own learn() loop on the env (a few steps, fake simulator)."""
     from stable_baselines3 import SAC
+    from stable_baselines3.common.logger import Logger
 
     model = SAC("MlpPolicy", HistoryMatchingEnv(SPACE, fake_evaluate), learning_rate=3e-4,
                 buffer_size=10_000, batch_size=64, learning_starts=10, seed=0, device="cpu")
+    model.set_logger(Logger(folder=None, output_formats=[]))  # SB3's default makes /tmp/SB3-*
     model.learn(total_timesteps=30)
     assert model.num_timesteps == 30
 

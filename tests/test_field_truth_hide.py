@@ -91,3 +91,22 @@ def test_hide_kind_field_runs_one_truth_and_writes_the_hidden_case(tmp_path, sma
                           str(tmp_path / "plain")])
     assert plain.exit_code == 2 and "has no field parameter" in text
     assert not (tmp_path / "plain").exists() and log.read_text().split() == ["truth-run"]
+
+
+def test_the_field_version_of_the_small_case_is_written_with_its_fields_and_raised_targets(
+        tmp_path):
+    """hmcore.scenarios.synthetic_fields: the small case's deck with the producers' oil targets
+    raised, the two fields and the [ensemble] keys in its case file (one OPM run, the
+    synthetic truth's)."""
+    from hmcore.scenarios.synthetic_deck import SMALL_LAYOUT
+    from hmcore.scenarios.synthetic_fields import RATE_SCALE, write_field_case
+
+    case = load_case_file(write_field_case(tmp_path / "fields", 0,
+                                           {"size": 40, "localisation": "adaptive"}))
+    assert case.name == "synthetic-small-fields"
+    assert [f.name for f in case.fields] == ["poro", "permx"] and case.space.names == []
+    assert case.ensemble.size == 40 and case.ensemble.localisation == "adaptive"
+    deck = case.deck.read_text()
+    for w in SMALL_LAYOUT.wells:
+        assert f" '{w.name}' 'OPEN' 'ORAT' {w.orat_sm3_day * RATE_SCALE:.1f} " in deck
+    assert not case.observed.empty

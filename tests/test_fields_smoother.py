@@ -149,6 +149,25 @@ def test_distance_localisation_keeps_far_cells_at_their_prior():
                    locations=xy)
 
 
+@pytest.mark.parametrize("localisation", ["none", "adaptive"])
+def test_data_that_do_not_vary_over_the_members_are_left_out_of_the_update(localisation):
+    m0, c0, g, obs, _, _ = linear_problem(seed=3)
+    prior = np.random.default_rng(4).multivariate_normal(m0, c0, size=60).astype(np.float32)
+    y = prior.astype(np.float64) @ g.T
+    settings = SmootherSettings(alphas=(1.0,), localisation=localisation, seed=5)
+    # a fifth datum that no member moves (a rate the well's control sets), far from its value
+    const = Observations(np.append(obs.values, 50.0), np.append(obs.std, 1e-3))
+    y5 = np.column_stack([y, np.full(60, 49.0)])
+    with np.errstate(all="raise"):  # no 0/0 in the adaptive localisation's correlations
+        update = assimilate(prior, y5, const, 0, settings)
+    assert update.constant == (4,)
+    plain = assimilate(prior, y, obs, 0, settings)
+    assert plain.constant == ()
+    np.testing.assert_allclose(update.ensemble, plain.ensemble, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="none of the 2 data varies over the 60 members"):
+        assimilate(prior, np.ones((60, 2)), Observations(np.zeros(2), np.ones(2)), 0, settings)
+
+
 def test_the_gaspari_cohn_taper():
     assert gaspari_cohn(np.array([0.0, 2.0, 3.0])).tolist() == [1.0, 0.0, 0.0]
     taper = gaspari_cohn(np.linspace(0, 2, 201))

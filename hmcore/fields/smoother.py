@@ -16,6 +16,9 @@ the update is done in batches of parameters (``prepare_assimilation`` once, then
 A member whose run failed (``failed``), whose responses are not finite, or that was left out
 before (a NaN row of ``X``) is left out of this update and every later one (ERT's way): its row
 of the posterior is NaN. Fewer than ``min_realizations`` left: :class:`TooFewRealizations`.
+A datum whose responses do not vary over the members that ran (a rate the well's control
+sets, a quantity still zero before breakthrough) tells the update nothing and would make the
+adaptive localisation's correlations 0/0: it is left out of that update (``Update.constant``).
 The observation perturbations of iteration ``i`` come from ``default_rng([seed, i])``, drawn
 for every member, so a member's perturbation does not depend on which others failed, and a
 resumed iteration repeats the update exactly. Ask/tell: the smoother never runs a simulator.
@@ -32,6 +35,9 @@ import numpy as np
 from hmcore.fields.ensemble import EnsembleSpec
 from hmcore.fields.localisation import distance_taper
 
+SPREAD_TOLERANCE = 1e-9
+"""A datum whose responses' standard deviation over the members is at most this share of its
+observation error (``std``) is taken as constant and left out of the update."""
 MAX_BATCH_BYTES = 256 * 2**20
 """Working memory of one batch of parameters (the default batch size is derived from it)."""
 
@@ -62,6 +68,11 @@ class Observations:
         if self.locations is not None and np.shape(self.locations) != (n, 2):
             raise ValueError(f"locations must have shape (observations, 2) = ({n}, 2), got "
                              f"{np.shape(self.locations)}")
+
+    def subset(self, keep: np.ndarray) -> Observations:
+        """The data where ``keep`` ``(observations,)`` is True."""
+        return Observations(self.values[keep], self.std[keep],
+                            None if self.locations is None else self.locations[keep])
 
 
 @dataclass(frozen=True)
@@ -100,7 +111,8 @@ class Update:
     """One assimilation's result: ``ensemble`` ``(members, parameters)`` float32, NaN rows for
     the members left out; ``active`` ``(members,)``; ``left_out`` the members left out at this
     step (failed or non-finite responses); ``iteration`` (0-based) and its ``alpha`` (the
-    schedule normalised so that sum(1/alpha) = 1); ``batches`` of parameters; ``seconds``."""
+    schedule normalised so that sum(1/alpha) = 1); ``batches`` of parameters; ``constant``
+    the data left out because their responses did not vary over the members; ``seconds``."""
 
     ensemble: np.ndarray
     active: np.ndarray
@@ -109,6 +121,7 @@ class Update:
     alpha: float
     batches: int
     seconds: float = field(compare=False)
+    constant: tuple[int, ...] = ()
 
 
 def assimilate(X: np.ndarray, Y: np.ndarray, observations: Observations, iteration: int,
@@ -143,21 +156,27 @@ def assimilate(X: np.ndarray, Y: np.ndarray, observations: Observations, iterati
             f"{members} members have results ({int(now.sum())} failed now, {int(before.sum())} "
             f"left out before), fewer than min_realizations = {settings.min_realizations}; "
             "the iteration stops")
-    smoother = _smoother(observations, settings, iteration)
     noise = np.random.default_rng([settings.seed, iteration]).standard_normal((n_obs, members))
-    perturbations = noise[:, ok] * observations.std[:, None]
-    smoother.prepare_assimilation(Y=np.ascontiguousarray(Y[ok].T), truncation=settings.truncation,
-                                  overwrite=True, observation_perturbations=perturbations)
+    varies = Y[ok].std(axis=0) > SPREAD_TOLERANCE * observations.std
+    if not varies.any():
+        raise ValueError(f"ES-MDA assimilation {iteration + 1}: none of the {n_obs} data varies "
+                         f"over the {ok.size} members that ran; nothing to update from")
+    used = observations if varies.all() else observations.subset(varies)
+    smoother = _smoother(used, settings, iteration)
+    perturbations = noise[np.ix_(varies, ok)] * used.std[:, None]
+    smoother.prepare_assimilation(Y=np.ascontiguousarray(Y[np.ix_(ok, varies)].T),
+                                  truncation=settings.truncation, overwrite=True,
+                                  observation_perturbations=perturbations)
     posterior = np.full(X.shape, np.nan, dtype=np.float32)
     size = settings.batch(ok.size, n_obs)
-    taper_xy = _check_locations(settings, observations, locations, n_par)
+    taper_xy = _check_locations(settings, used, locations, n_par)
     for start in range(0, n_par, size):
         stop = min(start + size, n_par)
         batch = np.ascontiguousarray(X[ok, start:stop].T, dtype=np.float32)
         if settings.localisation == "adaptive":
             new = smoother.assimilate_batch(X=batch, overwrite=True, n_jobs=settings.n_jobs)
         elif settings.localisation == "distance":
-            rho = distance_taper(taper_xy[start:stop], observations.locations, settings.radius)
+            rho = distance_taper(taper_xy[start:stop], used.locations, settings.radius)
             new = smoother.assimilate_batch(X=batch, overwrite=True,
                                             localization_callback=lambda K, rho=rho: K * rho)
         else:
@@ -165,7 +184,7 @@ def assimilate(X: np.ndarray, Y: np.ndarray, observations: Observations, iterati
         posterior[ok, start:stop] = new.T
     return Update(posterior, active, tuple(np.flatnonzero(now).tolist()), iteration,
                   float(smoother.alpha[iteration]), -(-n_par // size),
-                  time.perf_counter() - started)
+                  time.perf_counter() - started, tuple(np.flatnonzero(~varies).tolist()))
 
 
 def _smoother(observations: Observations, settings: SmootherSettings, iteration: int):

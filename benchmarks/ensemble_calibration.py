@@ -1,0 +1,172 @@
+"""Is the ensemble's forecast calibrated? Hidden truths drawn from a case's prior, an ensemble
+run on each, and the share of truths inside the posterior's P10-P90 (issue 41).
+
+    python benchmarks/ensemble_calibration.py --case CASE --out DIR --truths 1 2 ... \
+        [--variant none] [--variant distance:radius=1500] [--variant adaptive] \
+        [--set size=50] [--workers 2] [--max-minutes 120]
+
+For each truth seed s: ``hmflow hide --kind field --case CASE --out DIR/truth-s --seed s``
+(a truth drawn from CASE's own prior, never one of the members, simulated over the whole
+schedule, PUNQ-S3's noise on its history); then, for each variant, the ensemble run
+``DIR/store`` campaign ``t<s>-<variant>`` on that hidden case with the variant's ``[ensemble]``
+keys (``--set`` applies to every variant; a variant is ``localisation[:key=value,...]``),
+and ``hmflow reveal``'s judgement: for FOPT, FWPT, FGPT and each well's WOPT at the
+schedule's end, is the truth inside the prior's and the posterior's P10-P90, and how far the
+mean fields are from the truth's.
+
+Everything resumes: a truth already drawn is kept, a campaign already run is judged from the
+store, a campaign cut short is resumed by its own journal. ``--max-minutes`` stops starting new
+campaigns after that long (run it again for the next slice). Rows go to ``DIR/calibration.csv``
+(one per truth, variant, ensemble and quantity) and ``DIR/fields.csv``; the summary (share
+inside per variant and quantity, with its count) is printed as Markdown. Nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import tomlkit
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from hmcore.cases import load_case  # noqa: E402
+from hmcore.scenarios.field_truth import (  # noqa: E402
+    TRUTH_JSON,
+    hide_field_truth,
+    reveal_field_truth,
+)
+from storage import ArtifactStore  # noqa: E402
+from storage.ensemble import FORECAST_STEP  # noqa: E402
+
+
+def variant_keys(variant: str) -> tuple[str, dict]:
+    """'distance:radius=1500' -> ('distance-r1500', {'localisation': 'distance', 'radius':
+    1500.0})."""
+    kind, _, rest = variant.partition(":")
+    keys: dict = {"localisation": kind}
+    label = kind
+    for item in filter(None, rest.split(",")):
+        k, _, v = item.partition("=")
+        keys[k.strip()] = tomlkit.parse(f"v = {v.strip()}")["v"]
+        label += f"-{k.strip()[0]}{v.strip()}"
+    return label, keys
+
+
+def case_copy(hidden_case: Path, keys: dict, dest: Path) -> Path:
+    """The hidden case with its ``[ensemble]`` keys set (a copy in ``dest``)."""
+    doc = tomlkit.parse(hidden_case.read_text())
+    for section in ("deck", "observed"):
+        doc["case"][section] = str((hidden_case.parent / doc["case"][section]).resolve())
+    ensemble = doc.setdefault("ensemble", tomlkit.table())
+    for k, v in keys.items():
+        ensemble[k] = v
+    if keys.get("localisation") != "distance" and "radius" in ensemble:
+        del ensemble["radius"]
+    dest.mkdir(parents=True, exist_ok=True)
+    out = dest / "case.toml"
+    text = tomlkit.dumps(doc)
+    if not out.is_file() or out.read_text() != text:
+        out.write_text(text)
+    return out
+
+
+def judged_rows(truth: int, label: str, hidden: Path, store: Path, campaign: str
+                ) -> tuple[list[dict], list[dict]]:
+    revealed = reveal_field_truth(hidden, store, campaign)
+    checks = [{"truth": truth, "variant": label, "ensemble": c.ensemble, "well": c.well,
+               "quantity": c.quantity, "value": c.truth, "P90": c.P90, "P50": c.P50,
+               "P10": c.P10, "members": c.members, "inside": c.inside, "width": c.width}
+              for c in revealed.checks]
+    errors = [{"truth": truth, "variant": label, "field": e.field, "space": e.space,
+               "rmse_prior": e.prior, "rmse_posterior": e.posterior} for e in revealed.errors]
+    return checks, errors
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--case", required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--truths", type=int, nargs="+", required=True)
+    ap.add_argument("--variant", action="append", default=[],
+                    help="localisation[:key=value,...]; default: none and adaptive")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="an [ensemble] key for every variant (e.g. size=50)")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--max-minutes", type=float, default=None)
+    args = ap.parse_args()
+
+    from flows.ensemble import ensemble_flow  # Prefect starts its API on import of the flow
+
+    started = time.time()
+    out = args.out.resolve()
+    store = out / "store"
+    common = {k.strip(): tomlkit.parse(f"v = {v.strip()}")["v"]
+              for k, _, v in (item.partition("=") for item in args.set)}
+    variants = [variant_keys(v) for v in (args.variant or ["none", "adaptive"])]
+    base = load_case(args.case)
+    checks, errors, skipped = [], [], []
+    for s in args.truths:
+        hidden_dir = out / f"truth-{s}"
+        hidden = hidden_dir / TRUTH_JSON
+        for label, keys in variants:
+            campaign = f"t{s}-{label}"
+            done = ArtifactStore(store).latest(campaign, FORECAST_STEP) is not None
+            late = args.max_minutes is not None and time.time() - started > 60 * args.max_minutes
+            if not done and late:
+                skipped.append(campaign)
+                continue
+            if not hidden.is_file():
+                print(f"truth {s}: drawn and run into {hidden_dir}", flush=True)
+                hide_field_truth(base, hidden_dir, s)
+            if not done:
+                case = case_copy(hidden_dir / "case.toml", {**common, **keys},
+                                 out / "cases" / campaign)
+                print(f"{campaign}: ensemble run ({time.time() - started:.0f} s in)", flush=True)
+                result = ensemble_flow(case=str(case), workers=args.workers,
+                                       storage=str(store), campaign=campaign)
+                if not isinstance(result, dict):
+                    print(f"{campaign}: did not finish: {result}", flush=True)
+                    continue
+            c, e = judged_rows(s, label, hidden, store, campaign)
+            checks += c
+            errors += e
+    if not checks:
+        print("nothing judged yet")
+        return
+    table = pd.DataFrame(checks)
+    table.to_csv(out / "calibration.csv", index=False)
+    pd.DataFrame(errors).to_csv(out / "fields.csv", index=False)
+    print(summary(table, pd.DataFrame(errors)))
+    if skipped:
+        print(f"\nnot started (--max-minutes): {', '.join(skipped)}; run again to go on")
+
+
+def summary(table: pd.DataFrame, errors: pd.DataFrame) -> str:
+    """Markdown: per variant and quantity, the truths inside the prior's and the posterior's
+    P10-P90 (count and share) and the median relative band width; per variant and field, the
+    median RMSE of the mean field to the truth, prior and posterior, and how often the
+    posterior's is the smaller."""
+    lines = ["| variant | quantity | truths | inside prior | inside posterior | "
+             "median width prior | median width posterior |", "|---|---|---|---|---|---|---|"]
+    table = table.assign(name=table.well.where(table.well != "FIELD", "") + " " + table.quantity)
+    for (variant, name), g in table.groupby(["variant", "name"], sort=True):
+        pr, po = g[g.ensemble == "prior"], g[g.ensemble == "posterior"]
+        lines.append(f"| {variant} | {name.strip()} | {len(po)} | {int(pr.inside.sum())} "
+                     f"({pr.inside.mean():.0%}) | {int(po.inside.sum())} ({po.inside.mean():.0%})"
+                     f" | {pr.width.median():.3f} | {po.width.median():.3f} |")
+    lines += ["", "| variant | field | truths | median RMSE prior | median RMSE posterior | "
+              "posterior closer |", "|---|---|---|---|---|---|"]
+    for (variant, field), g in errors.groupby(["variant", "field"], sort=True):
+        closer = int((g.rmse_posterior < g.rmse_prior).sum())
+        lines.append(f"| {variant} | {field} | {len(g)} | {g.rmse_prior.median():.4f} | "
+                     f"{g.rmse_posterior.median():.4f} | {closer} of {len(g)} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()

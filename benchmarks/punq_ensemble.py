@@ -1,0 +1,237 @@
+"""PUNQ-S3 as the literature runs it: the ensemble run judged against the truth, which is the
+deck's own fields (issue 41).
+
+    python benchmarks/punq_ensemble.py --out bench-punq-ensemble \
+        [--case benchmarks/cases/punqs3_fields.toml] [--campaign punq-es] [--workers 2] \
+        [--set localisation=distance --set radius=1500] [--evaluate-only]
+
+1. The truth, once: ``OUT/truth/hidden_truth.json`` as ``hmflow hide --kind field`` writes it
+   (so ``hmflow reveal`` reads it): the deck's own PORO, PERMX and PERMZ in update space
+   (``truth.parquet``, read with opm.io), and the forecast quantities of one run of the deck
+   as it is (FOPT, FWPT, FGPT, each well's WOPT at the schedule's end; PUNQ-S3's truth FOPT
+   at day 6025 is 3.882e6 sm3). The truth is read after the run, never by it.
+2. The run: ``hmflow ensemble --case CASE --campaign NAME --storage OUT/store --workers W``
+   (``--set key=value`` changes the case's ``[ensemble]`` section in a copy of the case file
+   beside the store). It resumes: started again, it simulates only the members not journaled.
+3. The judgement, from stored artifacts only (``hmflow reveal``'s): the truth's FOPT and
+   each well's WOPT against the prior's and the posterior's P10-P90, the band widths, the RMSE
+   of the prior's and the posterior's mean fields to the truth per field and per layer, the
+   mean spread of the members, the misfit per round; and the run's cost: its wall time
+   against the simulator time per worker (sum of the members' simulator seconds / W), and the
+   updates' seconds. Printed as Markdown and written to ``OUT/<campaign>.json``.
+
+Nothing is asserted; the figures go into docs/ensembles.md and docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import tomlkit
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from hmcore.cases import load_case  # noqa: E402
+from hmcore.fields.ensemble import EnsembleSpec  # noqa: E402
+from hmcore.fields.grid import read_grid  # noqa: E402
+from hmcore.fields.layout import Layout  # noqa: E402
+from hmcore.fields.members import ensemble_matrix, ensemble_table  # noqa: E402
+from hmcore.fields.transform import to_update_space  # noqa: E402
+from hmcore.scenarios.field_truth import (  # noqa: E402
+    FIELD_KIND,
+    TRUTH_JSON,
+    TRUTH_TABLE,
+    reveal_field_truth,
+    truth_forecast,
+)
+from hmcore.scoring.evaluation import evaluate, simulator_for  # noqa: E402
+from hmcore.simulation.curves import read_curves  # noqa: E402
+from storage import ArtifactStore, EvaluationJournal  # noqa: E402
+from storage.ensemble import (  # noqa: E402
+    ENSEMBLE_DOC,
+    ENSEMBLE_FILE,
+    FORECAST_STEP,
+    ensemble_step,
+    member_journal,
+)
+
+DEFAULT_CASE = REPO / "benchmarks" / "cases" / "punqs3_fields.toml"
+
+
+def write_deck_truth(case_path: Path, out: Path) -> Path:
+    """``out/hidden_truth.json`` for a case whose truth is its deck's own fields; kept when
+    it exists."""
+    doc_path = out / TRUTH_JSON
+    if doc_path.is_file():
+        return doc_path
+    out.mkdir(parents=True, exist_ok=True)
+    case = load_case(case_path)
+    grid = read_grid(case.deck)
+    layout = Layout(tuple(f.name for f in case.fields), (), grid.n_active)
+    X = layout.stack({f.name: to_update_space(grid.deck_values(f.keyword), f)[None, :]
+                      for f in case.fields})
+    ensemble_table(X, layout).to_parquet(out / TRUTH_TABLE)
+    whole = case.simulator.model_copy(update={"stop_at_last_observation": False})
+    plain = type(case)(**{**case.__dict__, "simulator": whole})
+    run_dir = out / "truth-run"
+    ev = evaluate(plain, {}, run_dir, simulator_for(plain))
+    if ev.responses is None:
+        raise SystemExit(f"the deck's own run failed ({run_dir}): {ev.reason}")
+    wells = sorted(case.info.wells)
+    summary = min(run_dir.glob("*.SMSPEC"))
+    forecast = truth_forecast(read_curves(summary, wells), wells)
+    doc = {"kind": FIELD_KIND, "seed": None, "case": str(case.source),
+           "truth": "the deck's own fields (PUNQ-S3's truth)",
+           "fields": [{"name": f.name, "keyword": f.keyword,
+                       "space": "log10" if f.in_log else "value"} for f in case.fields],
+           "layout": {"fields": list(layout.fields), "scalars": [], "n_active": grid.n_active},
+           "truth_table": str(out / TRUTH_TABLE), "truth_run": str(run_dir),
+           "summary": str(summary), "schedule_end_days": float(case.info.end_days),
+           "FOPT": next(r["value"] for r in forecast if r["quantity"] == "FOPT"),
+           "forecast": forecast}
+    doc_path.write_text(json.dumps(doc, indent=2) + "\n")
+    return doc_path
+
+
+def case_with(case_path: Path, sets: list[str], out: Path) -> Path:
+    """The case file, or a copy beside the store with ``[ensemble]`` keys changed."""
+    if not sets:
+        return case_path
+    doc = tomlkit.parse(case_path.read_text())
+    for item in sets:
+        key, _, value = item.partition("=")
+        doc["ensemble"][key.strip()] = tomlkit.parse(f"v = {value.strip()}")["v"]
+    doc["case"]["deck"] = str((case_path.parent / doc["case"]["deck"]).resolve())
+    doc["case"]["observed"] = str((case_path.parent / doc["case"]["observed"]).resolve())
+    out.mkdir(parents=True, exist_ok=True)
+    copy = out / case_path.name
+    copy.write_text(tomlkit.dumps(doc))
+    return copy
+
+
+def run(case: Path, store: Path, campaign: str, workers: int) -> float:
+    started = time.time()
+    subprocess.run([sys.executable, "-m", "hmflow.cli", "ensemble", "--case", str(case),
+                    "--campaign", campaign, "--storage", str(store), "--workers", str(workers)],
+                   check=True, timeout=6 * 3600)
+    return time.time() - started
+
+
+def layer_errors(store: ArtifactStore, campaign: str, truth_doc: dict, last: int,
+                 dims: tuple[int, int, int], active: np.ndarray) -> list[dict]:
+    """RMSE of the mean field and the members' mean sd, per field and layer, prior and
+    posterior."""
+    layout = Layout(tuple(truth_doc["layout"]["fields"]), (), truth_doc["layout"]["n_active"])
+    truth = ensemble_matrix(pd.read_parquet(truth_doc["truth_table"]), layout)[0]
+    layer = active // (dims[0] * dims[1]) + 1  # k of each active cell, 1-based
+    rows = []
+    for i, label in ((0, "prior"), (last, "posterior")):
+        X = ensemble_matrix(store.latest(campaign, ensemble_step(i)).read_parquet(ENSEMBLE_FILE),
+                            layout).astype(np.float64)
+        X = X[np.isfinite(X).all(axis=1)]
+        for name in layout.fields:
+            cols = layout.columns(name)
+            for k in np.unique(layer):
+                sel = np.flatnonzero(layer == k)
+                x, t = X[:, cols][:, sel], truth[cols][sel]
+                rows.append({"ensemble": label, "field": name, "layer": int(k),
+                             "rmse": float(np.sqrt(np.mean((x.mean(axis=0) - t) ** 2))),
+                             "sd": float(x.std(axis=0, ddof=1).mean()),
+                             "members": int(X.shape[0])})
+    return rows
+
+
+def cost(store: ArtifactStore, campaign: str, rounds: int, workers: int) -> dict:
+    """Wall time of the members' runs against the simulator time per worker, per round and in
+    all (a round's wall time: from its first run's start to its last run's end)."""
+    out, total_wall, total_sim = [], 0.0, 0.0
+    for i in range(rounds):
+        records = EvaluationJournal(store, campaign, member_journal(i)).rows()
+        if not records:
+            continue
+        starts = [r["finished_at"] - r["wall_time_s"] for r in records]
+        wall = max(r["finished_at"] for r in records) - min(starts)
+        sim = sum(r["sim_time_s"] for r in records)
+        total_wall += wall
+        total_sim += sim
+        out.append({"round": i, "runs": len(records), "wall_s": wall,
+                    "sim_s_per_worker": sim / workers,
+                    "overhead": wall / (sim / workers) - 1.0,
+                    "sim_s_per_run": sim / len(records)})
+    return {"rounds": out, "wall_s": total_wall, "sim_s_per_worker": total_sim / workers,
+            "overhead": total_wall / (total_sim / workers) - 1.0 if total_sim else None}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--case", type=Path, default=DEFAULT_CASE)
+    ap.add_argument("--campaign", default="punq-es")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="change a key of the case's [ensemble] section (TOML value)")
+    ap.add_argument("--evaluate-only", action="store_true",
+                    help="judge the stored run; simulate nothing")
+    args = ap.parse_args()
+    out = args.out.resolve()
+    store_dir = out / "store"
+    truth_json = write_deck_truth(args.case.resolve(), out / "truth")
+    case = case_with(args.case.resolve(), args.set, out / f"case-{args.campaign}")
+    seconds = None if args.evaluate_only else run(case, store_dir, args.campaign, args.workers)
+    store = ArtifactStore(store_dir)
+    settings = store.settings(args.campaign)
+    last = len(EnsembleSpec.model_validate(settings["ensemble"]).alphas)
+    revealed = reveal_field_truth(truth_json, store_dir, args.campaign)
+    truth_doc = json.loads(truth_json.read_text())
+    prior = store.latest(args.campaign, ensemble_step(0))
+    meta = prior.read_json(ENSEMBLE_DOC)
+    active = prior.read_parquet("grid.parquet")["active"].to_numpy()
+    layers = layer_errors(store, args.campaign, truth_doc, last, tuple(meta["dims"]), active)
+    summary = store.latest(args.campaign, FORECAST_STEP).read_json("summary.json")
+    spent = cost(store, args.campaign, last + 1, args.workers)
+    result = {"campaign": args.campaign, "case": str(case), "ensemble": settings["ensemble"],
+              "command_seconds": seconds, "fopt_inside": revealed.fopt_inside,
+              "checks": [{**c.__dict__, "inside": c.inside, "width": c.width}
+                         for c in revealed.checks],
+              "errors": [e.__dict__ for e in revealed.errors], "layers": layers,
+              "rounds": summary["iterations"], "updates": summary["updates"], "cost": spent}
+    (out / f"{args.campaign}.json").write_text(json.dumps(result, indent=2, default=str) + "\n")
+    print(f"## {args.campaign}: {settings['ensemble']}\n")
+    print("| ensemble | quantity | truth | P90 | P50 | P10 | inside | width |")
+    print("|---|---|---|---|---|---|---|---|")
+    for c in revealed.checks:
+        print(f"| {c.ensemble} | {c.well} {c.quantity} | {c.truth:.4g} | {c.P90:.4g} | "
+              f"{c.P50:.4g} | {c.P10:.4g} | {'yes' if c.inside else 'NO'} | {c.width:.3f} |")
+    print("\n| field | space | RMSE prior mean | RMSE posterior mean |\n|---|---|---|---|")
+    for e in revealed.errors:
+        print(f"| {e.field} | {e.space} | {e.prior:.4f} | {e.posterior:.4f} |")
+    print("\n| field | layer | RMSE prior | RMSE posterior | sd prior | sd posterior |")
+    print("|---|---|---|---|---|---|")
+    by = {(r["ensemble"], r["field"], r["layer"]): r for r in layers}
+    for (e, f, k), r in by.items():
+        if e == "prior":
+            p = by[("posterior", f, k)]
+            print(f"| {f} | {k} | {r['rmse']:.4f} | {p['rmse']:.4f} | {r['sd']:.4f} | "
+                  f"{p['sd']:.4f} |")
+    print("\n| round | planned | ran | failed | misfit median | misfit mean |")
+    print("|---|---|---|---|---|---|")
+    for r in summary["iterations"]:
+        print(f"| {r['iteration']} | {r['planned']} | {r['ran']} | {r['failed']} | "
+              f"{r['misfit_median']:.3g} | {r['misfit_mean']:.3g} |")
+    print(f"\ncost: members' runs {spent['wall_s']:.0f} s wall against "
+          f"{spent['sim_s_per_worker']:.0f} s of simulator time per worker "
+          f"(overhead {spent['overhead']:+.1%}); updates "
+          f"{[u.get('update_seconds') for u in summary['updates']]} s; the command "
+          f"{seconds if seconds is None else round(seconds)} s")
+
+
+if __name__ == "__main__":
+    main()
