@@ -2,8 +2,9 @@
 
 The case fits the full measured history (``punqs3_observed_full_history.csv``) up to day 2936.
 The truth parameters (poro 1, permx/y/z 1, skin 5) must score at the noise level of the data
-and clearly better than corners of the 5-D box; responses must move the physically expected
-way; ``hmflow evaluate`` must write the documented metrics.json and responses.parquet.
+and clearly better (3x lower misfit) than the all-low and all-high corners of the 5-D box and
+one seeded random corner; responses must move the physically expected way; ``hmflow evaluate``
+must write the documented metrics.json and responses.parquet.
 """
 
 from __future__ import annotations
@@ -28,8 +29,10 @@ from hmcore.simulation.simulator import OpmFlow
 
 pytestmark = [requires_punq, requires_opm]
 
-CORNER_SEED = 1  # a sample with both skin bounds and a mix of multipliers
-N_RANDOM_CORNERS = 3
+# one random corner besides all-low and all-high (issue 40, suite time: it was 3, two simulator
+# runs more); seed 1 picks poro low with permx/y/z and skin high, a mix of the bounds
+CORNER_SEED = 1
+N_RANDOM_CORNERS = 1
 
 
 def responses_of(result, case) -> pd.DataFrame:
@@ -119,7 +122,7 @@ def test_truth_on_the_standard_subset_with_its_sigmas(truth_run, punq_case):
 
 # ----------------------------------------------------------------------------- corners
 def sampled_corners(space) -> list[dict[str, float]]:
-    """All-low, all-high and a seeded random sample of the other 30 corners of the box."""
+    """All-low, all-high and one seeded random corner of the other 30 corners of the box."""
     lows, highs = space.low, space.high
     others = [bits for bits in itertools.product((0, 1), repeat=space.dim)
               if 0 < sum(bits) < space.dim]
@@ -137,6 +140,8 @@ def test_corner_sample_is_as_specified(punq_case):
     assert corners[0] == {"poro_mult": 0.8, "permx_mult": 0.3, "permy_mult": 0.3,
                           "permz_mult": 0.3, "skin": -5.0}
     assert corners[1] == {"poro_mult": 1.2, "permx_mult": 3.0, "permy_mult": 3.0,
+                          "permz_mult": 3.0, "skin": 15.0}
+    assert corners[2] == {"poro_mult": 0.8, "permx_mult": 3.0, "permy_mult": 3.0,
                           "permz_mult": 3.0, "skin": 15.0}
     assert corners == sampled_corners(punq_case.space)  # seeded
 
