@@ -194,24 +194,27 @@ def test_tables_command_prints_the_papers_three_tables_from_storage(campaign, tm
 
 
 def test_sac_paper_campaign_journals_and_resumes_with_the_real_simulator(tmp_path, small_case):
-    """`sac-paper` through the campaign flow: 4 real OPM calls, 2 at a time, then resumed to 6
-    (only 2 new runs, the first 4 records untouched)."""
+    """`sac-paper` through the campaign flow: 2 real OPM calls, 2 at a time, then resumed to 4
+    (only 2 new runs, on both lanes; the first 2 records untouched)."""
     from flows.campaign import campaign_flow
 
     case, storage = write_case(tmp_path, small_case), tmp_path / "store"
     kw = dict(case=str(case), agent="sac-paper", workers=2, seed=3, storage=str(storage),
               campaign="paper")
-    campaign_flow(budget=4, **kw)
+    campaign_flow(budget=2, **kw)
     journal = EvaluationJournal(ArtifactStore(storage), "paper")
     before = {r["index"]: r for r in journal.rows()}
-    assert sorted(before) == [0, 1, 2, 3]
+    assert sorted(before) == [0, 1]
     assert all(r["agent"] == "sac-paper" and r["status"] in ("COMPLETE", "INVALID")
                for r in before.values())
-    assert [r["lane"] for r in before.values()] == [0, 1, 0, 1]
-    campaign_flow(budget=6, **kw)
+    assert [r["lane"] for r in before.values()] == [0, 1]
+    campaign_flow(budget=4, **kw)
     after = {r["index"]: r for r in journal.rows()}
-    assert sorted(after) == list(range(6)) and all(after[i] == before[i] for i in before)
-    assert len(list((storage / "paper" / "runs").iterdir())) == 6
+    assert sorted(after) == list(range(4)) and all(after[i] == before[i] for i in before)
+    assert all(after[i]["agent"] == "sac-paper" and after[i]["status"] in ("COMPLETE", "INVALID")
+               for i in (2, 3))
+    assert [after[i]["lane"] for i in (2, 3)] == [0, 1]
+    assert len(list((storage / "paper" / "runs").iterdir())) == 4
 
 
 def test_a_call_journaled_before_its_worker_died_is_not_simulated_again(tmp_path):
@@ -231,13 +234,14 @@ def test_a_call_journaled_before_its_worker_died_is_not_simulated_again(tmp_path
 def test_the_default_campaign_simulates_no_point_twice_and_keeps_its_jacobian_valid(
         tmp_path, small_case, prefect_api):
     """`hmflow run` as `make run` types it (the default method, lm; 2 workers; seed 0) on the
-    small synthetic case, 30 calls: no two calls of the journal are of the same point, and no
+    small synthetic case, 16 calls: no two calls of the journal are of the same point, and no
     Jacobian run breaks a physics check its base passes (its finite-difference step went the
     other way). The descents meet the porosity-permeability trend check there: lm version 2
     sent a Jacobian run across it at call 44 (and 11 more by call 100); version 4's steps
-    turned at calls 9, 10, 27 and 28 of 50 (2026-11-28)."""
+    turned at calls 9, 10, 27 and 28 of 50 (2026-11-28), and at calls 9 and 10 of this
+    test's 16 (its journal, 2026-11-28; 30 calls before, cut for the suite's time, issue 40)."""
     assert DEFAULT_AGENT == "lm"
-    budget = 30
+    budget = 16
     run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
                           "--budget", str(budget), "--storage", str(tmp_path / "store")],
                          cwd=tmp_path, env=cli_env(prefect_api, COLUMNS="150"),
