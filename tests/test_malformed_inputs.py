@@ -12,6 +12,7 @@ The default suite runs 100 examples of each kind (about five of each defect); ``
 from __future__ import annotations
 
 import math
+import os
 import string
 import tempfile
 from pathlib import Path
@@ -212,9 +213,15 @@ def _not_float(w: str) -> bool:
 # ----------------------------------------------------------------------------- the check
 @pytest.fixture
 def refused(monkeypatch):
-    """Run `hmflow evaluate` on a case folder; the simulator must never start."""
+    """Run `hmflow evaluate` on a case folder; the simulator must never start.
+
+    OPM's parse of a deck is memoised for the test, keyed by the deck's resolved path and
+    mtime (a changed deck is parsed again, a deck OPM refuses is never memoised): every
+    example names the same built-in deck, which OPM parsed once per example before (issue 40,
+    suite time). What hmflow checks of a deck that is missing or broken runs as before."""
     from typer.testing import CliRunner
 
+    import hmcore.eclipse.deck_info
     import hmcore.scoring.evaluation
     import hmcore.simulation.simulator
     from hmflow.cli import app
@@ -222,8 +229,18 @@ def refused(monkeypatch):
     def started(*args, **kwargs):
         raise AssertionError("a simulator was started on bad input")
 
+    parse, parsed = hmcore.eclipse.deck_info._parse, {}
+
+    def memo_parse(path):
+        path = Path(path).resolve()
+        key = (path, path.stat().st_mtime_ns)
+        if key not in parsed:
+            parsed[key] = parse(path)
+        return parsed[key]
+
     monkeypatch.setattr(hmcore.scoring.evaluation, "evaluate", started)
     monkeypatch.setattr(hmcore.simulation.simulator, "run_in_own_group", started)
+    monkeypatch.setattr(hmcore.eclipse.deck_info, "_parse", memo_parse)
     runner = CliRunner()
 
     def run(toml, csv: str) -> tuple[str, Path, Path]:
@@ -274,6 +291,26 @@ def _check_csv(refused, example):
         assert any(f"line {line}" in p or f"lines {line}" in p or f", {line}" in p
                    for p in problems), (line, text)
     assert all(" line" in p or str(csv_path) == p.split()[0] for p in problems), text
+
+
+def test_a_deck_broken_after_its_parse_is_parsed_again_and_refused(refused, tmp_path):
+    """The memoised parse of :func:`refused` keys on the deck's mtime: a deck broken after
+    a refused example read it is parsed again and refused with OPM's message, not taken
+    from the memo; a deck that is gone is refused as not found."""
+    deck = tmp_path / "SYNTH.DATA"
+    deck.write_text(DECK.read_text())
+    data = _base()
+    data["case"]["deck"] = str(deck)
+    data["parameters"][1]["wells"] = ["NOSUCHWELL"]
+    text, _, _ = refused(data, _csv(ROWS))
+    assert "'skin'" in text and "NOSUCHWELL" in text, text
+    deck.write_text(DECK.read_text().replace(" 20 20 5 /", " 20 twenty 5 /", 1))
+    os.utime(deck, ns=(deck.stat().st_atime_ns, deck.stat().st_mtime_ns + 10**9))
+    text, _, _ = refused(data, _csv(ROWS))
+    assert "OPM cannot parse the deck" in text and str(deck) in text, text
+    deck.unlink()
+    text, _, _ = refused(data, _csv(ROWS))
+    assert "deck file not found" in text, text
 
 
 @settings(max_examples=DEFAULT_EXAMPLES, **SWEEP)
