@@ -15,6 +15,10 @@ SPACE = ParameterSpace.reference()
 TARGET = np.array([0.3, -0.5, 0.6, -0.2, 0.1])
 A = np.random.default_rng(1).normal(size=(30, SPACE.dim))
 BUDGET, WORKERS = 40, 2
+# (budget, calls journaled before the resume) of test_method_spends_exactly_...: 40 and 26, but
+# bo's Gaussian process is fitted again at each of its calls after its 10 quasi-random ones
+# (24 s of the suite at 40, issue 40): 20 calls, resumed after 13, 3 of them the GP's
+RESUME_BUDGETS = {"bo": (20, 13)}
 
 
 def fake_batch(jobs, log=None):
@@ -37,22 +41,23 @@ def fake_batch(jobs, log=None):
     return out
 
 
-def run(method: str, seed: int = 0, done=None, log=None):
-    proposer = make_proposer(method, SPACE.dim, seed, WORKERS, BUDGET)
-    return calibrate(proposer, SPACE, lambda jobs: fake_batch(jobs, log), BUDGET, WORKERS, done)
+def run(method: str, seed: int = 0, done=None, log=None, budget: int = BUDGET):
+    proposer = make_proposer(method, SPACE.dim, seed, WORKERS, budget)
+    return calibrate(proposer, SPACE, lambda jobs: fake_batch(jobs, log), budget, WORKERS, done)
 
 
 @pytest.mark.parametrize("method", AGENTS)
 def test_method_spends_exactly_its_budget_reproducibly_and_resumes(method):
+    budget, journaled = RESUME_BUDGETS.get(method, (BUDGET, 26))
     log: list[int] = []
-    first = run(method, log=log)
-    assert [r["index"] for r in first] == list(range(BUDGET)) and sorted(log) == list(range(BUDGET))
+    first = run(method, log=log, budget=budget)
+    assert [r["index"] for r in first] == list(range(budget)) and sorted(log) == list(range(budget))
     assert all(np.all(np.abs(r["action"]) <= 1.0) for r in first)
-    again = run(method)
+    again = run(method, budget=budget)
     assert [r["action"] for r in again] == [r["action"] for r in first]
     log.clear()
-    resumed = run(method, done={r["index"]: r for r in first[:26]}, log=log)
-    assert log == list(range(26, BUDGET))  # nothing journaled is evaluated again
+    resumed = run(method, done={r["index"]: r for r in first[:journaled]}, log=log, budget=budget)
+    assert log == list(range(journaled, budget))  # nothing journaled is evaluated again
     assert [r["action"] for r in resumed] == [r["action"] for r in first]
     best = best_record(first)
     assert best is not None and best["status"] == "COMPLETE"
