@@ -2,7 +2,7 @@
 PREFECT_HOME, free loopback port: the session's, conftest.prefect_server), a process work pool, the deployments of
 ``deployments/campaign.py``, a `prefect worker start` subprocess and real OPM Flow runs.
 
-The campaign (the small synthetic case of conftest.small_case, random agent, budget 4, 2 at
+The campaign (the small synthetic case of conftest.small_case, random agent, budget 2, 2 at
 a time) is triggered with ``run_deployment``; then the report-only deployment is run and must
 not simulate anything.
 Server, worker and every process they started are stopped in the fixtures' teardown.
@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 POOL = "hmflow-test-process"
 NAME = "it-nightly"
 CAMPAIGN = "deploy-it"
-BUDGET = 4
+BUDGET = 2
 RUN_TIMEOUT_S = 240
 
 pytestmark = [
@@ -58,7 +58,7 @@ def deployed(api_settings, tmp_path_factory, small_case):
     pool = ensure_work_pool(POOL)
     assert ensure_work_pool(POOL).id == pool.id  # idempotent
     # seed 1: a call within the budget that no physics check penalises, so a best case is
-    # archived (seed 0's four are all penalised on this case)
+    # archived (seed 0's first four are all penalised on this case)
     params = campaign_parameters(case=str(case), agent="random", budget=BUDGET, workers=2,
                                  seed=1, storage=storage, campaign=CAMPAIGN)
     assert params["storage"] == str(storage.resolve()) and Path(params["storage"]).is_absolute()
