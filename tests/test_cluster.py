@@ -23,7 +23,7 @@ import pytest
 from conftest import cli_env
 
 DASK = Path(sys.executable).with_name("dask")
-BUDGET = 6
+BUDGET = 4  # was 6 (issue 40, suite time): the kill lands at the 3rd call, with calls left
 
 pytestmark = [pytest.mark.opm,
               pytest.mark.skipif(not DASK.exists(), reason="the dask command is not installed")]
@@ -143,7 +143,7 @@ def test_a_campaign_on_two_dask_workers_survives_one_killed_mid_call(tmp_path, s
         deadline = time.time() + 600
         while time.time() < deadline and victim is None:  # the 3rd call has started
             started = sorted(p.name for p in runs.iterdir()) if runs.is_dir() else []
-            if any(re.fullmatch(r"00000[2-5]", n) for n in started):
+            if any(re.fullmatch(r"00000[2-3]", n) for n in started):
                 busy = {r["index"] for r in _records(tmp_path, "killed")}
                 running = [n for n in started if int(n[:6]) not in busy]
                 # the worker whose simulator runs that call (calls go to whichever worker
