@@ -98,7 +98,8 @@ def validate_name(kind: str, value: object) -> str:
 @dataclass(frozen=True)
 class ArtifactVersion:
     """One published version of a step. ``reused`` is True when :meth:`ArtifactStore.put`
-    returned an existing version instead of writing a new one."""
+    returned an existing version instead of writing a new one (or :meth:`ArtifactStore.reusable`
+    found it)."""
 
     campaign: str
     step: str
@@ -181,33 +182,20 @@ class ArtifactStore:
             writer: Callable[[Path], None], code_version: str) -> ArtifactVersion:
         """Publish a new version of ``campaign/step``, or reuse the latest one.
 
-        If the latest version has the same ``inputs_hash`` and ``code_version`` and verifies
-        intact, it is returned with ``reused=True`` and ``writer`` is not called: ``inputs``
-        must therefore name everything that determines the files (parameters, config,
-        upstream ``ref()``s...). Otherwise ``writer(tmp_dir)`` writes regular files into a fresh
-        temp dir (``manifest.json`` at its top is reserved), which is hashed and atomically
-        renamed to the next ``vNNNN``; a version number taken concurrently is skipped. If the
-        writer raises, the temp dir is removed and the exception propagates.
+        If :meth:`reusable` finds a version for ``inputs`` and ``code_version``, it is
+        returned with ``reused=True`` and ``writer`` is not called: ``inputs`` must therefore
+        name everything that determines the files (parameters, config, upstream
+        ``ref()``s...). Otherwise ``writer(tmp_dir)`` writes regular files into a fresh temp
+        dir (``manifest.json`` at its top is reserved), which is hashed and atomically renamed
+        to the next ``vNNNN``; a version number taken concurrently is skipped. If the writer
+        raises, the temp dir is removed and the exception propagates.
         """
+        reused = self.reusable(campaign, step, inputs, code_version)  # checks the arguments
+        if reused is not None:
+            return reused
         step_dir = self._step_dir(campaign, step)
-        if step == JOURNAL_STEP:
-            raise ValueError(f"step name {JOURNAL_STEP!r} is reserved for the evaluation journal")
-        if is_journal_folder(step):
-            raise ValueError(f"step name {step!r} is reserved for a journal (names starting "
-                             f"with {JOURNAL_STEP}-)")
-        if not isinstance(inputs, Mapping):
-            raise TypeError(f"inputs must be a dict, got {type(inputs).__name__}")
-        if not isinstance(code_version, str) or not code_version:
-            raise ValueError(f"code_version must be a non-empty string, got {code_version!r}")
         inputs = to_jsonable(inputs, "inputs")
         inputs_hash = sha256_json(inputs)
-        refuse_links(self.root, campaign, step)
-
-        latest = self.latest(campaign, step)
-        if (latest is not None and latest.manifest.get("inputs_hash") == inputs_hash
-                and latest.manifest.get("code_version") == code_version and not latest.verify()):
-            return dataclasses.replace(latest, reused=True)
-
         step_dir.mkdir(parents=True, exist_ok=True)
         tmp = step_dir / f".tmp-{uuid.uuid4().hex}"
         tmp.mkdir()  # not tempfile.mkdtemp: its 0o700 mode would stick to the published version
@@ -228,6 +216,31 @@ class ArtifactStore:
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
+
+    def reusable(self, campaign: str, step: str, inputs: Mapping[str, Any],
+                 code_version: str) -> ArtifactVersion | None:
+        """The version :meth:`put` returns for these arguments instead of writing one: the
+        latest version of ``campaign/step`` when it has the same inputs (by ``inputs_hash``)
+        and ``code_version`` and verifies intact, with ``reused=True``; None when ``put`` would
+        write a new version. Lets a caller whose files are costly to make look first. The
+        arguments are checked as ``put`` checks them (names, reserved steps, inputs, links)."""
+        self._step_dir(campaign, step)
+        if step == JOURNAL_STEP:
+            raise ValueError(f"step name {JOURNAL_STEP!r} is reserved for the evaluation journal")
+        if is_journal_folder(step):
+            raise ValueError(f"step name {step!r} is reserved for a journal (names starting "
+                             f"with {JOURNAL_STEP}-)")
+        if not isinstance(inputs, Mapping):
+            raise TypeError(f"inputs must be a dict, got {type(inputs).__name__}")
+        if not isinstance(code_version, str) or not code_version:
+            raise ValueError(f"code_version must be a non-empty string, got {code_version!r}")
+        inputs_hash = sha256_json(to_jsonable(inputs, "inputs"))
+        refuse_links(self.root, campaign, step)
+        latest = self.latest(campaign, step)
+        if (latest is not None and latest.manifest.get("inputs_hash") == inputs_hash
+                and latest.manifest.get("code_version") == code_version and not latest.verify()):
+            return dataclasses.replace(latest, reused=True)
+        return None
 
     def put_files(self, campaign: str, step: str, inputs: Mapping[str, Any],
                   files: Mapping[str, FileContent], code_version: str) -> ArtifactVersion:

@@ -90,7 +90,8 @@ def archive_best(store_root: str, campaign: str, results: ArtifactVersion) -> Ar
 def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = True) -> ArtifactVersion:
     """Rebuild the report from stored artifacts only (zero simulator calls): the campaign's
     results and best case, and its latest diagnosis (``diagnosis-report``) when it has one, its
-    plots copied beside ``report.md``."""
+    plots copied beside ``report.md``. A report of the same inputs and code is the stored one:
+    its Prefect artifacts are published again and no figure is drawn."""
     store = ArtifactStore(store_root)
     results = store.latest(campaign, "results")
     case = store.latest(campaign, "case")
@@ -100,12 +101,30 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
                                 "and no diagnosis; run the campaign first (hmflow run, or "
                                 "hmflow diagnose)")
     best = store.latest(campaign, "best") if results is not None else None
+    best_doc = best.read_json("metrics.json") if best else None
+    refined = latest_noise(store, campaign)
+    inputs = {"results": results.ref() if results is not None else None, "case": case.ref(),
+              "noise": refined.ref() if refined is not None else None,
+              "report_version": REPORT_VERSION,
+              "best": best.ref() if best else None}
+    if diagnosis is not None:
+        inputs["diagnosis"] = diagnosis.ref()
+    curves = store.latest(campaign, "curves")
+    if curves is None and results is not None:  # a campaign from before curves were stored:
+        curves = collect(store_root, campaign, campaign_reference(store, campaign))  # run dirs
+    if curves is not None:
+        inputs["curves"] = curves.ref()
+    stored = store.reusable(campaign, "report", inputs, code_version())
+    if stored is not None:  # the store would keep this version: draw nothing
+        if publish_prefect_artifacts:
+            publish(campaign, stored.file("report.md").read_text(encoding="utf-8"), best_doc,
+                    stored.file("report.html"))
+        return stored
+
     case_doc = case.read_json("case.json")
     table = results.read_parquet("evaluations.parquet") if results is not None else None
-    best_doc = best.read_json("metrics.json") if best else None
     diagnosis_doc = diagnosis.read_json("diagnosis.json") if diagnosis is not None else None
     truth = _truth_for(case_doc)
-    refined = latest_noise(store, campaign)
     noise_from = refined if refined is not None else case
     noise = (noise_from.read_parquet("noise.parquet") if "noise.parquet" in noise_from.files
              else None)
@@ -113,21 +132,10 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     markdown, doc = build_report(campaign, case_doc, table, best_doc, truth, diagnosis_doc,
                                  noise, Choice(scores.get("objective", "E"),
                                                scores.get("noise"), scores.get("references")))
-    inputs = {"results": results.ref() if results is not None else None, "case": case.ref(),
-              "noise": refined.ref() if refined is not None else None,
-              "report_version": REPORT_VERSION,
-              "best": best.ref() if best else None}
-    if diagnosis is not None:
-        inputs["diagnosis"] = diagnosis.ref()
     files: dict = {"report.md": markdown, "report.json": doc}
     for name in (diagnosis_doc or {}).get("plots", []):
         if name in diagnosis.files:
             files[name] = diagnosis.file(name).read_bytes()
-    curves = store.latest(campaign, "curves")
-    if curves is None and results is not None:  # a campaign from before curves were stored:
-        curves = collect(store_root, campaign, campaign_reference(store, campaign))  # run dirs
-    if curves is not None:
-        inputs["curves"] = curves.ref()
     html, pngs = render(report_inputs(store, campaign, case_doc, table, best_doc, truth,
                                       curves, diagnosis_doc, _diagnosis_markdown(diagnosis_doc),
                                       {n: files[n] for n in files if n.endswith(".png")}))

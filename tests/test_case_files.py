@@ -48,11 +48,12 @@ def test_resume_on_a_changed_include_is_refused_with_the_file_named(tmp_path, sm
                           storage=str(store), campaign="inc", return_state=True)
     assert first.is_completed(), first.message
     (case_file.parent / "notes.txt").write_text("unrelated")  # does not block a resume
-    again = campaign_flow(case=str(case_file), agent="random", budget=2, workers=1,
-                          storage=str(store), campaign="inc", return_state=True)
-    assert again.is_completed(), again.message
-    inc.write_text(inc.read_text().replace("PVTW", "PVTW\n-- edited", 1))
     runs = sorted((store / "inc" / "runs").iterdir())
+    again = campaign_flow(case=str(case_file), agent="random", budget=1, workers=1,
+                          storage=str(store), campaign="inc", return_state=True)
+    assert again.is_completed(), again.message  # resumed (its 1 call journaled), not refused
+    assert sorted((store / "inc" / "runs").iterdir()) == runs  # nothing simulated again
+    inc.write_text(inc.read_text().replace("PVTW", "PVTW\n-- edited", 1))
     refused = campaign_flow(case=str(case_file), agent="random", budget=3, workers=1,
                             storage=str(store), campaign="inc", return_state=True)
     assert refused.is_failed() and f"{inc} changed" in refused.message, refused.message
@@ -73,8 +74,11 @@ def test_resume_on_a_changed_include_is_refused_with_the_file_named(tmp_path, sm
                                        before["case_artifact"], "deck_files": before["deck_files"]}
     assert settings["deck_files"][str(inc)] != before["deck_files"][str(inc)]
     assert {p: p.read_bytes() for p in (store / "inc").rglob("*") if p.is_file()} == old
-    again = campaign_flow(case=str(case_file), agent="random", budget=2, workers=1,
+    fork_runs = sorted((store / "inc-fork" / "runs").iterdir())
+    again = campaign_flow(case=str(case_file), agent="random", budget=1, workers=1,
                           storage=str(store), campaign="inc-fork", forked_from="inc",
-                          return_state=True)  # the same fork resumes
+                          return_state=True)  # the same fork resumes, not refused
     assert again.is_completed(), again.message
-    assert len(list((store / "inc-fork" / "evaluations").glob("*.json"))) == 2
+    assert sorted((store / "inc-fork" / "runs").iterdir()) == fork_runs  # nothing simulated
+    assert len(list((store / "inc-fork" / "evaluations").glob("*.json"))) == 1
+    assert {p: p.read_bytes() for p in (store / "inc").rglob("*") if p.is_file()} == old

@@ -862,7 +862,8 @@ def test_cli_printing_of_a_diagnosis(tmp_path):
 
 
 def test_the_campaign_report_carries_the_diagnosis_and_from_campaign_keeps_to_its_case(tmp_path,
-                                                                                       capsys):
+                                                                                       capsys,
+                                                                                       monkeypatch):
     """`hmflow report` rebuilds a campaign's report from stored artifacts: with a diagnosis
     stored in the campaign (its gain, ranking and plots) and for a campaign that is a
     diagnosis alone; `--from-campaign` starts from the campaign's best on its own case and
@@ -894,7 +895,13 @@ def test_the_campaign_report_carries_the_diagnosis_and_from_campaign_keeps_to_it
     assert text["diagnosis"]["selected"] == doc["selected"]["id"] == "well_skin:PROD3"
     assert text["calls"] == 0 and rep.verify() == []
     assert doc["plots"] and all(p in rep.files for p in doc["plots"])  # the plots travel along
-    assert report.fn(store_root, "linear-diagnosis", publish_prefect_artifacts=False).reused
+
+    def no_drawing(*args, **kwargs):
+        raise AssertionError("a report-only rerun of the same inputs drew its figures again")
+
+    monkeypatch.setattr("tasks.results.render", no_drawing)  # the stored report, nothing drawn
+    again = report.fn(store_root, "linear-diagnosis", publish_prefect_artifacts=False)
+    assert again.reused and again == rep
     from hmflow.cli.campaign import print_report as _print_report  # what `hmflow report` prints for it
 
     _print_report(Path(store_root), "linear-diagnosis")

@@ -2,20 +2,17 @@
 cover the minimum is refused before any simulation, an unknown kind is refused with a
 suggestion; the flow honours ``workers``, ``kinds`` and the task runner it is given.
 
-Fast tests use the linear stand-in simulator of test_diagnosis.py; the last test runs
-`hmflow` as a user types it (real OPM, real Prefect)."""
+These tests use the linear stand-in simulator of test_diagnosis.py; `hmflow diagnose
+--from-campaign` with a budget as the user types it (refused under the minimum, a budget that
+covers it kept, real OPM and Prefect) is in
+test_cli_run.test_diagnose_from_a_campaign_goes_into_its_report_and_the_campaign_still_resumes."""
 
 from __future__ import annotations
 
-import json
 import logging
-import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
-from conftest import cli_env
 from test_diagnosis import _linear_case
 
 
@@ -209,50 +206,3 @@ def test_the_flow_honours_workers_kinds_and_the_task_runner(tmp_path, monkeypatc
     assert state.is_failed() and "unknown field(s) ['chi2']" in state.message
     assert seen == {}  # no diagnosis, no runner
 
-
-# ============================================================================ real OPM
-@pytest.mark.opm
-def test_from_campaign_with_a_small_budget_is_refused_and_a_larger_one_is_kept(
-        tmp_path, small_case, prefect_api):
-    """As the user typed it: `hmflow diagnose --from-campaign X --budget 8` is refused in one
-    line before any simulation; with a budget that covers the minimum of one kind, exactly as
-    many simulations as run directories, never more than the budget (real OPM, real Prefect;
-    the campaign's archived best is stored directly, as `hmflow run` archives it). The small
-    synthetic case (conftest.small_case: the same wells and candidates' counts as the built-in
-    case, a fifth of its simulation time) and the session's Prefect server."""
-    from hmcore.cases import load_case
-    from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH
-    from storage import ArtifactStore
-    from tasks.case import prepare_deck
-
-    def hmflow(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
-        env = cli_env(prefect_api, COLUMNS="150")
-        return subprocess.run([sys.executable, "-m", "hmflow.cli", *args], cwd=tmp_path,
-                              env=env, capture_output=True, text=True, timeout=timeout,
-                              check=False)
-
-    shutil.copytree(small_case.parent, tmp_path / "syn")
-    store_root = tmp_path / "hmflow-storage"
-    case = load_case(tmp_path / "syn" / "case.toml")
-    prepare_deck.fn(case, "syn/case.toml", str(store_root), "b")
-    best = {n: float(SYNTHETIC_TRUTH.get(n, 1.0)) for n in case.space.names}
-    ArtifactStore(store_root).put_files("b", "best", {"index": 0}, {"params.json": best}, "test")
-
-    refused = hmflow("diagnose", "--from-campaign", "b", "--budget", "8")
-    assert refused.returncode == 2, refused.stdout + refused.stderr
-    lines = [ln for ln in refused.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "--budget: 8 simulator calls cannot cover the minimum of 40" \
-        in lines[0], refused.stderr
-    assert "Traceback" not in refused.stdout + refused.stderr
-    runs = store_root / "b" / "diagnosis-runs"
-    assert not runs.exists()
-    diag = hmflow("diagnose", "--from-campaign", "b", "--budget", "16", "--kinds", "well_skin",
-                  "--workers", "2")
-    assert diag.returncode == 0, diag.stdout + diag.stderr
-    assert "Traceback" not in diag.stdout + diag.stderr
-    report = sorted((store_root / "b" / "diagnosis-report").glob("v*/diagnosis.json"))[-1]
-    doc = json.loads(report.read_text())
-    assert doc["settings"]["kinds"] == ["well_skin"] and doc["settings"]["workers"] == 2
-    assert {c["kind"] for c in doc["ranking"]["candidates"]} == {"well_skin"}
-    made = len([p for p in runs.iterdir() if p.is_dir()])
-    assert doc["cost"]["simulations"] == made <= 16

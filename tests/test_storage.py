@@ -79,6 +79,25 @@ def test_new_version_when_inputs_or_code_change(tmp_path):
     assert store.get("camp", "deck", 2).manifest["inputs"] == {"x": 2}
 
 
+def test_reusable_finds_the_version_of_the_same_inputs_and_code_only(tmp_path):
+    """The version put() would return without writing, found before the files are made."""
+    store = ArtifactStore(tmp_path)
+    assert store.reusable("camp", "report", {"x": 1}, CV) is None  # nothing stored yet
+    first = store.put("camp", "report", {"x": 1, "y": [2]}, write_text("a"), CV)
+    hit = store.reusable("camp", "report", {"y": [2], "x": 1}, CV)
+    assert hit == first and hit.reused and hit.file("out.txt").read_text() == "a"
+    assert store.reusable("camp", "report", {"x": 2, "y": [2]}, CV) is None  # other inputs
+    assert store.reusable("camp", "report", {"x": 1, "y": [2]}, "test-code-2") is None
+    assert store.reusable("camp", "other-step", {"x": 1, "y": [2]}, CV) is None
+    first.file("out.txt").write_text("b")  # a damaged version is not reused
+    assert store.reusable("camp", "report", {"x": 1, "y": [2]}, CV) is None
+    with pytest.raises(ValueError, match="reserved"):
+        store.reusable("camp", "evaluations", {}, CV)
+    with pytest.raises(ValueError, match="non-empty"):
+        store.reusable("camp", "report", {}, "")
+    assert [v.version for v in store.versions("camp", "report")] == [1]  # it only looks
+
+
 def test_inputs_hash_handles_numpy_and_nan(tmp_path):
     store = ArtifactStore(tmp_path)
     v = store.put("camp", "s", {"k": np.int64(3), "f": np.float32(0.5), "n": float("nan"),

@@ -29,8 +29,11 @@ DPI = 90
 
 
 def png(fig: Figure) -> bytes:
+    """``fig`` as PNG bytes; zlib level 1: the same pixels as the default level 6, encoded
+    about twice as fast, in files about a fifth larger."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight",
+                pil_kwargs={"compress_level": 1})
     return buf.getvalue()
 
 
