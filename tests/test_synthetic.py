@@ -9,7 +9,10 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+import threading
+import time
 import tomllib
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +103,33 @@ def test_ensure_is_atomic_when_generation_fails(tmp_path: Path,
         syn.ensure_synthetic_case(7)
     assert list(tmp_path.iterdir()) == []  # nothing half-written is left behind
     assert syn.synthetic_case_dir(7) == tmp_path / "synthetic-v1-seed7"
+
+
+def test_ensure_writes_the_case_once_for_callers_at_the_same_time(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two callers at once (as two pytest-xdist workers at collection): one writes the case,
+    the other waits for it and returns it; no lock file or temporary folder is left."""
+    monkeypatch.setenv(syn.CACHE_ENV, str(tmp_path))
+    writes: list[Path] = []
+    both = threading.Barrier(2)
+
+    def slow_write(dest: Path, seed: int = 0, **kwargs) -> Path:
+        writes.append(Path(dest))
+        time.sleep(1.0)  # the other caller reaches the lock meanwhile
+        for name in FILES:
+            (Path(dest) / name).write_text(f"seed {seed}\n")
+        return Path(dest) / syn.CASE_NAME
+
+    def call(_) -> Path:
+        both.wait(timeout=30)
+        return syn.ensure_synthetic_case(5)
+
+    monkeypatch.setattr(syn, "write_synthetic_case", slow_write)
+    with ThreadPoolExecutor(2) as pool:
+        cases = list(pool.map(call, range(2)))
+    assert cases == [tmp_path / "synthetic-v1-seed5" / syn.CASE_NAME] * 2
+    assert len(writes) == 1, writes
+    assert [p.name for p in tmp_path.iterdir()] == ["synthetic-v1-seed5"]
 
 
 def test_same_seed_gives_identical_files(case_dir: Path, tmp_path: Path) -> None:

@@ -25,7 +25,9 @@ that grow after gas or water breakthrough.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
+import fcntl
 import json
 import os
 import shutil
@@ -323,13 +325,54 @@ def ensure_synthetic_case(seed: int = 0) -> Path:
     """Return ``case.toml`` of the cached synthetic case, writing it on first use.
 
     The case is built in a temporary sibling directory and renamed into place, so concurrent
-    callers and interrupted runs never leave a half-written case behind.
+    callers and interrupted runs never leave a half-written case behind. A writer holds a
+    lock (``flock`` on ``<cache dir>.lock`` beside it, removed when done): a second caller
+    waits and returns the first one's case instead of simulating it again (two pytest-xdist
+    workers that both need the built-in case, two `hmflow run` started at once).
     """
     final = synthetic_case_dir(seed)
     case = final / CASE_NAME
     if case.is_file():
         return case
     final.parent.mkdir(parents=True, exist_ok=True)
+    with _writer_lock(final.with_name(final.name + ".lock")):
+        if case.is_file():  # written by the caller this one waited for
+            return case
+        _write_into_place(final, seed)
+    return case
+
+
+@contextlib.contextmanager
+def _writer_lock(lock: Path):
+    """Hold an exclusive ``flock`` on the file ``lock``, created if missing and removed on
+    leaving. A waiter whose file was removed (and maybe created again by a third caller)
+    while it waited locks the file at the path anew, so that two callers never both hold it."""
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            held = os.fstat(fd)
+            try:
+                now = os.stat(lock)
+            except FileNotFoundError:
+                now = None
+        except BaseException:
+            os.close(fd)
+            raise
+        if now is not None and (now.st_dev, now.st_ino) == (held.st_dev, held.st_ino):
+            break
+        os.close(fd)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(lock)
+        os.close(fd)
+
+
+def _write_into_place(final: Path, seed: int) -> None:
+    """Write the case for ``seed`` in a temporary sibling of ``final``, then rename it there."""
+    case = final / CASE_NAME
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
     try:
         tmp.chmod(0o755)  # mkdtemp makes it private; the case itself is nothing secret
@@ -346,4 +389,3 @@ def ensure_synthetic_case(seed: int = 0) -> Path:
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
-    return case
