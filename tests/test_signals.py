@@ -1,7 +1,7 @@
 """SIGTERM (``kill PID``, a batch system's time limit) stops `hmflow run` as Ctrl-C does: it
 exits, the temporary Prefect server it started is gone with it, and the same command resumes
-the campaign from its journal (real OPM Flow, real Prefect; the default runs use the small
-synthetic case, conftest.small_case)."""
+the campaign from its journal; after ``kill -9`` nothing hmflow started is left either (real
+OPM Flow, real Prefect; the default run uses the small synthetic case, conftest.small_case)."""
 
 from __future__ import annotations
 
@@ -23,73 +23,94 @@ def _alive(pgid: int) -> list[str]:
     return [line for line in out.splitlines() if int(line.split()[1]) == pgid]
 
 
-@pytest.mark.opm
-def test_sigterm_stops_the_campaign_and_its_temporary_server(tmp_path, small_case):
-    store = tmp_path / "store"
-    args = [sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
-            "--agent", "random", "--budget", "40",
-            "--workers", "2", "--campaign", "term", "--storage", str(store)]
-    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    journal = store / "term" / "evaluations"
+def _journaled(journal: Path) -> dict[int, dict]:
+    """The journal's records by the index in their file names."""
+    return {int(p.stem): json.loads(p.read_text()) for p in journal.glob("*.json")}
+
+
+def _wait_for_records(journal: Path, n: int, proc: subprocess.Popen, log: Path) -> None:
     deadline = time.time() + 300
-    while time.time() < deadline and len(list(journal.glob("*.json"))) < 2:
+    while time.time() < deadline and proc.poll() is None and len(_journaled(journal)) < n:
         time.sleep(0.5)
-    assert len(list(journal.glob("*.json"))) >= 2, proc.communicate(timeout=60)[0][-3000:]
-    os.kill(proc.pid, signal.SIGTERM)
-    out, _ = proc.communicate(timeout=120)
-    assert proc.returncode != 0 and "Traceback" not in out, out[-3000:]
-    time.sleep(3)
-    assert not _alive(proc.pid), _alive(proc.pid)  # no server, no simulator left behind
-    # whole records only (each parses, and is the call its name says); with 2 workers a later
-    # call can finish before an earlier one, so the journal may have a gap the rerun fills
-    before = {int(p.stem): json.loads(p.read_text()) for p in journal.glob("*.json")}
-    assert all(row["index"] == index for index, row in before.items()), before.keys()
-    budget = max(before) + 3
-    rerun = subprocess.run(args[:-4] + ["--budget", str(budget), "--campaign", "term",
-                                        "--storage", str(store)],
-                           cwd=tmp_path, capture_output=True, text=True, timeout=600)
-    assert rerun.returncode == 0, rerun.stdout[-3000:] + rerun.stderr[-3000:]
-    assert f"resuming campaign term: {len(before)} calls already journaled" in rerun.stdout
-    assert "Error logging to API" not in rerun.stdout + rerun.stderr  # logs sent before it stops
-    rows = {int(p.stem): json.loads(p.read_text()) for p in journal.glob("*.json")}
-    assert sorted(rows) == list(range(budget))
-    assert all(rows[i] == row for i, row in before.items())  # nothing journaled is redone
+    assert len(_journaled(journal)) >= n, log.read_text()[-3000:]
+
+
+def _own_server(pgid: int, log: Path) -> None:
+    """hmflow's process group holds the temporary Prefect server it started."""
+    alive = _alive(pgid)
+    assert any("prefect.server.api.server:create_app" in line for line in alive), (
+        alive, log.read_text()[-3000:], os.environ.get("PREFECT_API_URL"))
 
 
 @pytest.mark.opm
-def test_kill_9_of_hmflow_leaves_no_server_and_no_simulator(tmp_path, small_case, prefect_api):
-    """SIGKILL cannot be caught: what hmflow started must die with it by itself (the
-    temporary Prefect server and the simulators are killed by the kernel, PR_SET_PDEATHSIG),
-    and the campaign resumes from its journal."""
+def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaign_resumes(
+        tmp_path, small_case, prefect_api):
+    """One campaign, three starts of the same command (one test since 2026-11-28, for the
+    suite's time, issue 40: it was a SIGTERM test and a kill -9 test, each with its own
+    campaign, reference runs and temporary servers):
+
+    1. ``kill -9``: SIGKILL cannot be caught, so what hmflow started must die with it by
+       itself (the temporary Prefect server and the simulators are killed by the kernel,
+       PR_SET_PDEATHSIG);
+    2. SIGTERM (``kill PID``, a batch system's time limit) of the resumed run stops it as
+       Ctrl-C does: it exits without a traceback, its temporary server gone with it, the
+       run's logs sent before it stopped;
+    3. the same command on the session's server resumes from the journal: every call once,
+       nothing journaled simulated again."""
     store = tmp_path / "store"
     args = [sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
             "--agent", "random", "--budget", "40",
-            "--workers", "2", "--campaign", "k9", "--storage", str(store)]
-    log = tmp_path / "hmflow.log"
+            "--workers", "2", "--campaign", "sig", "--storage", str(store)]
+    journal = store / "sig" / "evaluations"
+
+    # 1. kill -9 of hmflow, with its own temporary server, once 2 calls are journaled
+    log = tmp_path / "hmflow-kill9.log"
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=log.open("w"), stderr=subprocess.STDOUT,
                             start_new_session=True)
-    journal = store / "k9" / "evaluations"
-    deadline = time.time() + 300
-    while time.time() < deadline and len(list(journal.glob("*.json"))) < 2:
-        time.sleep(0.5)
-    assert len(list(journal.glob("*.json"))) >= 2, log.read_text()[-3000:]
-    before = _alive(proc.pid)
-    assert any("prefect.server.api.server:create_app" in line for line in before), (
-        before, log.read_text()[-3000:], os.environ.get("PREFECT_API_URL"))
+    _wait_for_records(journal, 2, proc, log)
+    _own_server(proc.pid, log)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(timeout=30)
     deadline = time.time() + 20
     while time.time() < deadline and _alive(proc.pid):
         time.sleep(0.5)
-    assert not _alive(proc.pid), _alive(proc.pid)
-    done = len(list(journal.glob("*.json")))
-    rerun = subprocess.run(args[:-6] + ["--budget", str(done + 1), "--campaign", "k9",
+    assert not _alive(proc.pid), _alive(proc.pid)  # no server, no simulator left behind
+    killed = _journaled(journal)
+    assert all(row["index"] == index for index, row in killed.items()), killed.keys()
+
+    # 2. the same command resumes (its own temporary server again); SIGTERM once it has
+    # journaled a call of its own
+    log = tmp_path / "hmflow-sigterm.log"
+    proc = subprocess.Popen(args, cwd=tmp_path, stdout=log.open("w"), stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    _wait_for_records(journal, len(killed) + 1, proc, log)
+    _own_server(proc.pid, log)
+    os.kill(proc.pid, signal.SIGTERM)
+    proc.wait(timeout=120)
+    out = log.read_text()
+    assert proc.returncode != 0 and "Traceback" not in out, out[-3000:]
+    assert f"resuming campaign sig: {len(killed)} calls already journaled" in out, out[-3000:]
+    assert "Error logging to API" not in out  # logs sent before its server stops
+    time.sleep(3)
+    assert not _alive(proc.pid), _alive(proc.pid)  # no server, no simulator left behind
+    # whole records only (each parses, and is the call its name says); with 2 workers a later
+    # call can finish before an earlier one, so the journal may have a gap the rerun fills
+    before = _journaled(journal)
+    assert all(row["index"] == index for index, row in before.items()), before.keys()
+    assert all(before[i] == row for i, row in killed.items())
+
+    # 3. on the session's server, to one call past the last journaled one
+    budget = max(before) + 2
+    rerun = subprocess.run(args[:-6] + ["--budget", str(budget), "--campaign", "sig",
                                         "--storage", str(store)],
                            cwd=tmp_path, capture_output=True, text=True, timeout=600,
-                           env=cli_env(prefect_api))  # resumed on the session's server
+                           env=cli_env(prefect_api), check=False)
     assert rerun.returncode == 0, rerun.stdout[-3000:] + rerun.stderr[-3000:]
-    assert sorted(int(p.stem) for p in journal.glob("*.json")) == list(range(done + 1))
+    assert f"resuming campaign sig: {len(before)} calls already journaled" in rerun.stdout
+    assert "Error logging to API" not in rerun.stdout + rerun.stderr
+    rows = _journaled(journal)
+    assert sorted(rows) == list(range(budget))
+    assert all(rows[i] == row for i, row in before.items())  # nothing journaled is redone
 
 
 def _orphans(store) -> list[str]:
