@@ -260,11 +260,14 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
     (every family and the default settings took 175 simulations, 7.4 min, on the built-in
     case): the deck of the small synthetic case (conftest.small_case, a fifth of the built-in
     case's simulation time) with the built-in case's true global parameters (`--set`), the
-    two families that both explain one well's pressure (`--kinds`), the two leading
-    candidates recalibrated, no restarts, one cause (:data:`FLOW_SETTINGS`); `hmflow hide` on
-    the built-in case is in the test below, the control searches every family on it, the slow
-    sweeps find every kind among all with the default settings. `hmflow report` uses the
-    session's Prefect server (conftest.prefect_api)."""
+    diagnosis given them as its calibrated model (``calibrated``: phase 1 of the calibration
+    skipped, the truth run once and polished by phase 2; 63 simulations instead of 78 from
+    the deck's values, 2026-11-28, issue 40: suite time), the two families that both explain
+    one well's pressure (`--kinds`), the two leading candidates recalibrated, no restarts,
+    one cause (:data:`FLOW_SETTINGS`); `hmflow hide` on the built-in case is in the test
+    below, the control (phase 1 from the deck's values, without Prefect) searches every
+    family on it, the slow sweeps find every kind among all with the default settings.
+    `hmflow report` uses the session's Prefect server (conftest.prefect_api)."""
     _opm()
     from rich.console import Console
     from typer.testing import CliRunner
@@ -298,10 +301,11 @@ def test_diagnose_flow_stores_every_step_and_finds_the_hidden_effect(tmp_path, c
     result = diagnose_command(case=str(case_toml), storage=tmp_path / "store", workers=2,
                               campaign="hidden-skin", console=console,
                               kinds=["well_skin", "regional_permeability"],
-                              settings=FLOW_SETTINGS)
+                              settings=FLOW_SETTINGS, calibrated=dict(SYNTHETIC_TRUTH))
     TIMES[f"flow-synthetic-{kind}-{seed}"] = time.perf_counter() - start
     doc = json.loads(Path(result["diagnosis_path"]).read_text())
     assert_found(doc, effect, tmp_path / "case")
+    assert doc["calibration"]["method"] == "given, polished"
     store = ArtifactStore(tmp_path / "store")
     for step in STEPS:
         assert store.latest("hidden-skin", step) is not None, step
