@@ -58,14 +58,15 @@ def variant_keys(variant: str) -> tuple[str, dict]:
 
 
 def case_copy(hidden_case: Path, keys: dict, dest: Path) -> Path:
-    """The hidden case with its ``[ensemble]`` keys set (a copy in ``dest``)."""
+    """A case file with its ``[ensemble]`` keys set, its deck and history by absolute path (a
+    copy in ``dest``, rewritten only when it changes)."""
     doc = tomlkit.parse(hidden_case.read_text())
     for section in ("deck", "observed"):
         doc["case"][section] = str((hidden_case.parent / doc["case"][section]).resolve())
     ensemble = doc.setdefault("ensemble", tomlkit.table())
     for k, v in keys.items():
         ensemble[k] = v
-    if keys.get("localisation") != "distance" and "radius" in ensemble:
+    if "localisation" in keys and keys["localisation"] != "distance" and "radius" in ensemble:
         del ensemble["radius"]
     dest.mkdir(parents=True, exist_ok=True)
     out = dest / "case.toml"

@@ -39,6 +39,7 @@ import tomlkit
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from ensemble_calibration import case_copy  # noqa: E402  (benchmarks/, the script's folder)
 from hmcore.cases import load_case  # noqa: E402
 from hmcore.fields.ensemble import EnsembleSpec  # noqa: E402
 from hmcore.fields.grid import read_grid  # noqa: E402
@@ -102,19 +103,13 @@ def write_deck_truth(case_path: Path, out: Path) -> Path:
 
 
 def case_with(case_path: Path, sets: list[str], out: Path) -> Path:
-    """The case file, or a copy beside the store with ``[ensemble]`` keys changed."""
+    """The case file, or a copy beside the store with ``[ensemble]`` keys changed
+    (``ensemble_calibration.case_copy``)."""
     if not sets:
         return case_path
-    doc = tomlkit.parse(case_path.read_text())
-    for item in sets:
-        key, _, value = item.partition("=")
-        doc["ensemble"][key.strip()] = tomlkit.parse(f"v = {value.strip()}")["v"]
-    doc["case"]["deck"] = str((case_path.parent / doc["case"]["deck"]).resolve())
-    doc["case"]["observed"] = str((case_path.parent / doc["case"]["observed"]).resolve())
-    out.mkdir(parents=True, exist_ok=True)
-    copy = out / case_path.name
-    copy.write_text(tomlkit.dumps(doc))
-    return copy
+    keys = {k.strip(): tomlkit.parse(f"v = {v.strip()}")["v"]
+            for k, _, v in (item.partition("=") for item in sets)}
+    return case_copy(case_path, keys, out)
 
 
 def run(case: Path, store: Path, campaign: str, workers: int) -> float:
