@@ -78,7 +78,7 @@ class EvaluationJournal:
                 f"(differs in {keys}); records are write-once, use a new index")
         refuse_links(self.store.root, self.campaign, self.folder)
         self.directory.mkdir(parents=True, exist_ok=True)
-        tmp = self.directory / f".tmp-{uuid.uuid4().hex}.json"
+        tmp = self.directory / f".tmp-{uuid.uuid4().hex}.part"  # never matches *.json
         try:
             with open(tmp, "x", encoding="utf-8") as f:
                 f.write(json.dumps(data, sort_keys=True, ensure_ascii=False, allow_nan=False))

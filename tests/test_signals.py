@@ -24,7 +24,8 @@ def _alive(pgid: int) -> list[str]:
 
 
 def _journaled(journal: Path) -> dict[int, dict]:
-    """The journal's records by the index in their file names."""
+    """The journal's records by the index in their file names (a record being written is a
+    ``.tmp-*.part`` file, which ``*.json`` does not match)."""
     return {int(p.stem): json.loads(p.read_text()) for p in journal.glob("*.json")}
 
 

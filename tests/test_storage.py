@@ -451,6 +451,24 @@ def test_journal_failed_write_leaves_no_record(tmp_path, monkeypatch):
     assert list(journal.directory.iterdir()) == []
 
 
+def test_a_record_being_written_is_not_a_json_file_to_a_reader(tmp_path, monkeypatch):
+    """A reader that lists ``*.json`` while the writer is between write and rename (a kill -9,
+    a test polling a live campaign) sees records only, never the temporary file (CI of
+    b942589 failed on ``int('.tmp-…')``)."""
+    journal = EvaluationJournal(ArtifactStore(tmp_path), "camp")
+    seen = []
+
+    def replace_after_looking(src, dst):
+        seen.append((Path(src).name, sorted(p.name for p in journal.directory.glob("*.json"))))
+        return real_replace(src, dst)
+
+    real_replace = os.replace
+    monkeypatch.setattr(os, "replace", replace_after_looking)
+    journal.record(1, {"loss": 1.0})
+    assert seen[0][0].startswith(".tmp-") and seen[0][1] == []
+    assert [p.name for p in journal.directory.glob("*.json")] == [journal.path(1).name]
+
+
 journal_rows = st.dictionaries(
     st.text(max_size=6).filter(lambda k: k != "index"),
     st.floats() | st.integers(-10**6, 10**6) | st.text(max_size=5) | st.none()
