@@ -91,12 +91,13 @@ def one(problems, where: str, what: str):
     return hits[0]
 
 
-def files_field(name: str, folder: str, keyword: str = "PORO") -> str:
+def files_field(name: str, folder: str, keyword: str = "PORO", copies: str = "") -> str:
     return f"""
 [[parameters]]
 name = "{name}"
 kind = "field"
 keyword = "{keyword}"
+{f'copies = ["{copies}"]' if copies else ""}
 prior = {{ source = "files", folder = "{folder}" }}
 """
 
@@ -154,7 +155,8 @@ def test_a_files_prior_with_enough_members_loads_and_its_folder_is_resolved(tmp_
     write_members(tmp_path / "priors" / "poro", 3)
     write_members(tmp_path / "priors" / "permx", 3, values=N_ACTIVE, keyword="PERMX")
     case = load_case(case_with(tmp_path, files_field("poro", "priors/poro"),
-                               files_field("permx", "priors/permx", keyword="PERMX"),
+                               files_field("permx", "priors/permx", keyword="PERMX",
+                                           copies="PERMY"),  # the deck copies PERMX to PERMY
                                "[ensemble]\nsize = 3"))
     prior = case.fields[0].prior
     assert isinstance(prior, FilesPrior)
@@ -194,6 +196,40 @@ def test_bad_field_specifications_are_refused_all_at_once_with_file_and_key(tmp_
     assert f"{N_CELLS} cells, {N_ACTIVE} of them active" in short[0].what
     ens = one(problems, rf"^{file} key 'ensemble\.min_realisations'$", "not permitted")
     assert "did you mean 'min_realizations'" in ens.fix
+
+
+def test_a_field_whose_keyword_the_deck_copies_to_another_is_refused_without_copies(tmp_path):
+    """PUNQ-S3's GRID ends with COPY 'PERMX' 'PERMY', before the members' include: a PERMX field
+    without ``copies = ["PERMY"]`` would leave every member the deck's (the truth's) PERMY."""
+    case = case_with(tmp_path, PORO, PERMX.replace('copies = ["PERMY"]', ""), ENSEMBLE)
+    problems = problems_of(case)
+    p = one(problems, rf"^{re.escape(str(case))} key 'parameters\.1'$",
+            r"PUNQS3\.DATA sets PERMY from PERMX in its GRID section \(COPY 'PERMX' 'PERMY'\)")
+    assert 'copies = ["PERMY"]' in p.fix and len(problems) == 1
+    # a field of PERMY's own is the other way out
+    own = PERMX.replace('"permx"', '"permy"').replace('"PERMX"', '"PERMY"').replace(
+        'copies = ["PERMY"]', "").replace("seed = 12", "seed = 13")
+    assert load_case(case_with(tmp_path, PORO, PERMX.replace('copies = ["PERMY"]', ""), own,
+                               ENSEMBLE)).fields[2].keyword == "PERMY"
+
+
+def test_copies_are_followed_through_the_deck_in_order():
+    """COPY PERMX PERMY then COPY PERMY PERMZ: both targets named at once for a PERMX field;
+    a copy from a keyword no field writes, or onto one a field writes, is no problem."""
+    from hmcore.fields.deck_edits import GridCopy, copy_problems
+
+    permx = FieldSpec.model_validate({"name": "k", "kind": "field", "keyword": "PERMX",
+                                      "prior": {"source": "files", "folder": "x"}})
+    chain = [GridCopy("COPY", "PERMX", "PERMY"), GridCopy("COPYREG", "PERMY", "PERMZ"),
+             GridCopy("COPY", "NTG", "PORO")]
+    found = copy_problems([permx], chain, "D.DATA")
+    assert [(p.where, p.what.split(" sets ")[1][:16]) for p in found] == [
+        ("field 'k'", "PERMY from PERMX"), ("field 'k'", "PERMZ from PERMY")]
+    with_y = permx.model_copy(update={"copies": ("PERMY",)})
+    assert [p.what.split(" sets ")[1][:16] for p in copy_problems([with_y], chain, "D")] == [
+        "PERMZ from PERMY"]
+    assert copy_problems([with_y.model_copy(update={"copies": ("PERMY", "PERMZ")})], chain,
+                         "D") == []
 
 
 def test_an_unknown_key_inside_a_field_is_named_with_its_nearest_key(tmp_path):

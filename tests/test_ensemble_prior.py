@@ -167,6 +167,7 @@ high = 2.0
 name = "permx"
 kind = "field"
 keyword = "PERMX"
+copies = ["PERMY"]
 prior = { source = "geostatistical", seed = 1, zones = [{ layers = [1, 5], mean = 1.5, std = 0.3 }], variogram = { ranges = [1000.0, 1000.0, 2.0] } }
 """)
     [problem] = ensemble_problems(load_case(case))

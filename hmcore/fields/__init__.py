@@ -7,7 +7,8 @@ parameter and its prior, as the case file states them), :mod:`~hmcore.fields.ens
 ``[ensemble]`` section), :mod:`~hmcore.fields.fieldset` (checks of a case's fields together,
 the order they are drawn in), :mod:`~hmcore.fields.transform` (update space <-> physical
 values), :mod:`~hmcore.fields.geometry` (cell centres from COORD/ZCORN or DX/DY),
-:mod:`~hmcore.fields.grid` (a deck's grid read with opm.io), :mod:`~hmcore.fields.zones`
+:mod:`~hmcore.fields.grid` (a deck's grid read with opm.io), :mod:`~hmcore.fields.deck_edits`
+(the deck's GRID copies a member's include comes after), :mod:`~hmcore.fields.zones`
 (zones' cells, checks on the grid), :mod:`~hmcore.fields.covariance` (gstools models, exact
 draws), :mod:`~hmcore.fields.prior` (drawn priors), :mod:`~hmcore.fields.grdecl` (a member's
 INCLUDE file, GRDECL read back), :mod:`~hmcore.fields.realisations` (the user's GRDECL priors),
