@@ -232,6 +232,31 @@ def test_copies_are_followed_through_the_deck_in_order():
                          "D") == []
 
 
+def test_a_deck_multiply_of_a_fields_keyword_is_named_and_a_neutral_one_is_not():
+    """MULTIPLY PERMZ 0.1 before the members' include would be lost in every member."""
+    from hmcore.fields.deck_edits import GridScaling, scaling_problems
+
+    permz = FieldSpec.model_validate({"name": "kz", "kind": "field", "keyword": "PERMZ",
+                                      "prior": {"source": "files", "folder": "x"}})
+    edits = [GridScaling("MULTIPLY", "PERMZ", 0.1), GridScaling("ADD", "PERMZ", 0.0),
+             GridScaling("MULTIREG", "PERMZ", 1.0), GridScaling("MULTIPLY", "PERMX", 2.0)]
+    [p] = scaling_problems([permz], edits, "D.DATA")
+    assert p.where == "field 'kz'" and "(MULTIPLY 'PERMZ' 0.1)" in p.what
+    assert "remove the MULTIPLY of PERMZ" in p.fix
+    # read from a deck by OPM's parser: GRID's records only, in order
+    from opm.io.parser import Parser
+
+    from hmcore.fields.deck_edits import grid_copies, grid_scalings
+
+    deck = Parser().parse_string(
+        "RUNSPEC\nDIMENS\n2 2 1 /\nGRID\nDX\n4*1 /\nDY\n4*1 /\nDZ\n4*1 /\nTOPS\n4*1 /\n"
+        "PORO\n4*0.2 /\nPERMX\n4*100 /\nMULTIPLY\n'PERMX' 0.5 /\n/\nCOPY\nPERMX PERMZ /\n/\n"
+        "ADD\nPORO 0.01 /\n/\nEDIT\nMULTIPLY\nPORV 2 /\n/\nPROPS\n")
+    assert grid_scalings(deck) == [GridScaling("MULTIPLY", "PERMX", 0.5),
+                                   GridScaling("ADD", "PORO", 0.01)]
+    assert [(c.source, c.target) for c in grid_copies(deck)] == [("PERMX", "PERMZ")]
+
+
 def test_an_unknown_key_inside_a_field_is_named_with_its_nearest_key(tmp_path):
     bad = PORO.replace("mean = 0.1,", "meen = 0.1,").replace("high = 0.35", "hihg = 0.35")
     problems = problems_of(case_with(tmp_path, bad, PERMX.replace("intercept", "intercpt")))

@@ -150,13 +150,19 @@ def field_problems(case_file: Path, fields: Sequence[tuple[int, FieldSpec]],
     (``parsed``; None when it could not be), the priors against its grid (keyword defined,
     zones inside the grid and covering its active cells once:
     :func:`~hmcore.fields.zones.prior_problems`; no GRID ``COPY`` from a field's keyword to
-    one no field writes: :func:`~hmcore.fields.deck_edits.copy_problems`) and a files prior's
+    one no field writes, no GRID ``MULTIPLY`` of a keyword a field writes:
+    :mod:`hmcore.fields.deck_edits`) and a files prior's
     realisations (the folder
     from ``folder_of``, relative to the case file; ``size`` files at least, each with the
     keyword for every cell or active cell, values in range:
     :func:`~hmcore.fields.realisations.read_realisations`; ``size`` None: the files there)."""
     # these import opm.io: keeps start-up fast (reading a case without fields never loads it)
-    from hmcore.fields.deck_edits import copy_problems, grid_copies
+    from hmcore.fields.deck_edits import (
+        copy_problems,
+        grid_copies,
+        grid_scalings,
+        scaling_problems,
+    )
     from hmcore.fields.grid import from_parsed
     from hmcore.fields.realisations import read_realisations, realisation_files
     from hmcore.fields.zones import prior_problems
@@ -179,6 +185,7 @@ def field_problems(case_file: Path, fields: Sequence[tuple[int, FieldSpec]],
         return problems + exc.problems
     problems += located(prior_problems(unique, grid))
     problems += located(copy_problems(unique, grid_copies(parsed.deck), parsed.path.name))
+    problems += located(scaling_problems(unique, grid_scalings(parsed.deck), parsed.path.name))
     for f in unique:
         if not isinstance(f.prior, FilesPrior):
             continue
