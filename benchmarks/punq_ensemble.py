@@ -10,9 +10,11 @@ deck's own fields (issue 41).
    (``truth.parquet``, read with opm.io), and the forecast quantities of one run of the deck
    as it is (FOPT, FWPT, FGPT, each well's WOPT at the schedule's end; PUNQ-S3's truth FOPT
    at day 6025 is 3.882e6 sm3). The truth is read after the run, never by it.
-2. The run: ``hmflow ensemble --case CASE --campaign NAME --storage OUT/store --workers W``
-   (``--set key=value`` changes the case's ``[ensemble]`` section in a copy of the case file
-   beside the store). It resumes: started again, it simulates only the members not journaled.
+2. The run: ``hmflow ensemble --case OUT/case-NAME/case.toml --campaign NAME --storage
+   OUT/store --workers W``, on a copy of CASE (``--set key=value`` changes its ``[ensemble]``
+   section) with the truth's ``hidden_truth.json`` beside it, so that the report draws the
+   truth in its forecast fans and layer maps. It resumes: started again, it simulates only
+   the members not journaled.
 3. The judgement, from stored artifacts only (``hmflow reveal``'s): the truth's FOPT and
    each well's WOPT against the prior's and the posterior's P10-P90, the band widths, the RMSE
    of the prior's and the posterior's mean fields to the truth per field and per layer, the
@@ -42,6 +44,7 @@ sys.path.insert(0, str(REPO))
 from ensemble_calibration import case_copy  # noqa: E402  (benchmarks/, the script's folder)
 from hmcore.cases import load_case  # noqa: E402
 from hmcore.fields.ensemble import EnsembleSpec  # noqa: E402
+from hmcore.fields.grdecl import write_grdecl  # noqa: E402
 from hmcore.fields.grid import read_grid  # noqa: E402
 from hmcore.fields.layout import Layout  # noqa: E402
 from hmcore.fields.members import ensemble_matrix, ensemble_table  # noqa: E402
@@ -67,11 +70,27 @@ from storage.ensemble import (  # noqa: E402
 DEFAULT_CASE = REPO / "benchmarks" / "cases" / "punqs3_fields.toml"
 
 
+TRUTH_GRDECL = "truth.GRDECL"
+"""The truth's fields as the report reads them (physical values per active cell)."""
+
+
+def write_truth_grdecl(case, grid, out: Path) -> Path:
+    """``out/truth.GRDECL``: the deck's own values of every field's keyword."""
+    return write_grdecl(out / TRUTH_GRDECL, {f.keyword: grid.deck_values(f.keyword)
+                                             for f in case.fields},
+                        header="-- the deck's own fields: PUNQ-S3's truth")
+
+
 def write_deck_truth(case_path: Path, out: Path) -> Path:
     """``out/hidden_truth.json`` for a case whose truth is its deck's own fields; kept when
-    it exists."""
+    it exists (the truth's GRDECL added to one written before it was)."""
     doc_path = out / TRUTH_JSON
     if doc_path.is_file():
+        doc = json.loads(doc_path.read_text())
+        if not doc.get("truth_grdecl"):
+            case = load_case(case_path)
+            doc["truth_grdecl"] = str(write_truth_grdecl(case, read_grid(case.deck), out))
+            doc_path.write_text(json.dumps(doc, indent=2) + "\n")
         return doc_path
     out.mkdir(parents=True, exist_ok=True)
     case = load_case(case_path)
@@ -95,6 +114,7 @@ def write_deck_truth(case_path: Path, out: Path) -> Path:
                        "space": "log10" if f.in_log else "value"} for f in case.fields],
            "layout": {"fields": list(layout.fields), "scalars": [], "n_active": grid.n_active},
            "truth_table": str(out / TRUTH_TABLE), "truth_run": str(run_dir),
+           "truth_grdecl": str(write_truth_grdecl(case, grid, out)),
            "summary": str(summary), "schedule_end_days": float(case.info.end_days),
            "FOPT": next(r["value"] for r in forecast if r["quantity"] == "FOPT"),
            "forecast": forecast}
@@ -102,14 +122,18 @@ def write_deck_truth(case_path: Path, out: Path) -> Path:
     return doc_path
 
 
-def case_with(case_path: Path, sets: list[str], out: Path) -> Path:
-    """The case file, or a copy beside the store with ``[ensemble]`` keys changed
-    (``ensemble_calibration.case_copy``)."""
-    if not sets:
-        return case_path
+def case_with(case_path: Path, sets: list[str], out: Path, truth_json: Path) -> Path:
+    """A copy of the case file in ``out`` with ``[ensemble]`` keys changed
+    (``ensemble_calibration.case_copy``) and the truth's ``hidden_truth.json`` beside it, so
+    that the ensemble's report draws the truth in its fans and maps (it looks beside the case
+    file, as for ``hmflow hide``'s cases)."""
     keys = {k.strip(): tomlkit.parse(f"v = {v.strip()}")["v"]
             for k, _, v in (item.partition("=") for item in sets)}
-    return case_copy(case_path, keys, out)
+    case = case_copy(case_path, keys, out)
+    beside = case.parent / TRUTH_JSON
+    if not beside.is_file() or beside.read_text() != truth_json.read_text():
+        beside.write_text(truth_json.read_text())
+    return case
 
 
 def run(case: Path, store: Path, campaign: str, workers: int) -> float:
@@ -179,7 +203,7 @@ def main() -> None:
     out = args.out.resolve()
     store_dir = out / "store"
     truth_json = write_deck_truth(args.case.resolve(), out / "truth")
-    case = case_with(args.case.resolve(), args.set, out / f"case-{args.campaign}")
+    case = case_with(args.case.resolve(), args.set, out / f"case-{args.campaign}", truth_json)
     seconds = None if args.evaluate_only else run(case, store_dir, args.campaign, args.workers)
     store = ArtifactStore(store_dir)
     settings = store.settings(args.campaign)
