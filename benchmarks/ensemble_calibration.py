@@ -84,7 +84,9 @@ def judged_rows(truth: int, label: str, hidden: Path, store: Path, campaign: str
                "P10": c.P10, "members": c.members, "inside": c.inside, "width": c.width}
               for c in revealed.checks]
     errors = [{"truth": truth, "variant": label, "field": e.field, "space": e.space,
-               "rmse_prior": e.prior, "rmse_posterior": e.posterior} for e in revealed.errors]
+               "rmse_prior": e.rmse_prior, "rmse_posterior": e.rmse_posterior, "sd_prior": e.sd_prior,
+               "sd_posterior": e.sd_posterior, "collapsed": e.collapsed}
+              for e in revealed.errors]
     return checks, errors
 
 
@@ -150,8 +152,10 @@ def main() -> None:
 def summary(table: pd.DataFrame, errors: pd.DataFrame) -> str:
     """Markdown: per variant and quantity, the truths inside the prior's and the posterior's
     P10-P90 (count and share) and the median relative band width; per variant and field, the
-    median RMSE of the mean field to the truth, prior and posterior, and how often the
-    posterior's is the smaller."""
+    median RMSE of the mean field to the truth, prior and posterior, how often the
+    posterior's is the smaller, the median RMSE over the members' spread (about 1 when the
+    truth is like a member) and how often the posterior collapsed
+    (:attr:`~hmcore.fields.spread.FieldSpread.collapsed`)."""
     lines = ["| variant | quantity | truths | inside prior | inside posterior | "
              "median width prior | median width posterior |", "|---|---|---|---|---|---|---|"]
     table = table.assign(name=table.well.where(table.well != "FIELD", "") + " " + table.quantity)
@@ -161,11 +165,15 @@ def summary(table: pd.DataFrame, errors: pd.DataFrame) -> str:
                      f"({pr.inside.mean():.0%}) | {int(po.inside.sum())} ({po.inside.mean():.0%})"
                      f" | {pr.width.median():.3f} | {po.width.median():.3f} |")
     lines += ["", "| variant | field | truths | median RMSE prior | median RMSE posterior | "
-              "posterior closer |", "|---|---|---|---|---|---|"]
+              "posterior closer | median RMSE/spread prior | posterior | collapsed |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for (variant, field), g in errors.groupby(["variant", "field"], sort=True):
         closer = int((g.rmse_posterior < g.rmse_prior).sum())
         lines.append(f"| {variant} | {field} | {len(g)} | {g.rmse_prior.median():.4f} | "
-                     f"{g.rmse_posterior.median():.4f} | {closer} of {len(g)} |")
+                     f"{g.rmse_posterior.median():.4f} | {closer} of {len(g)} | "
+                     f"{(g.rmse_prior / g.sd_prior).median():.2f} | "
+                     f"{(g.rmse_posterior / g.sd_posterior).median():.2f} | "
+                     f"{int(g.collapsed.sum())} of {len(g)} |")
     return "\n".join(lines)
 
 

@@ -220,7 +220,7 @@ def main() -> None:
               "command_seconds": seconds, "fopt_inside": revealed.fopt_inside,
               "checks": [{**c.__dict__, "inside": c.inside, "width": c.width}
                          for c in revealed.checks],
-              "errors": [e.__dict__ for e in revealed.errors], "layers": layers,
+              "errors": [{**e.__dict__, "collapsed": e.collapsed} for e in revealed.errors], "layers": layers,
               "rounds": summary["iterations"], "updates": summary["updates"], "cost": spent}
     (out / f"{args.campaign}.json").write_text(json.dumps(result, indent=2, default=str) + "\n")
     print(f"## {args.campaign}: {settings['ensemble']}\n")
@@ -229,9 +229,11 @@ def main() -> None:
     for c in revealed.checks:
         print(f"| {c.ensemble} | {c.well} {c.quantity} | {c.truth:.4g} | {c.P90:.4g} | "
               f"{c.P50:.4g} | {c.P10:.4g} | {'yes' if c.inside else 'NO'} | {c.width:.3f} |")
-    print("\n| field | space | RMSE prior mean | RMSE posterior mean |\n|---|---|---|---|")
+    print("\n| field | space | RMSE prior mean | RMSE posterior mean | spread prior | "
+          "spread posterior | posterior RMSE/spread |\n|---|---|---|---|---|---|---|")
     for e in revealed.errors:
-        print(f"| {e.field} | {e.space} | {e.prior:.4f} | {e.posterior:.4f} |")
+        print(f"| {e.field} | {e.space} | {e.rmse_prior:.4f} | {e.rmse_posterior:.4f} | "
+              f"{e.sd_prior:.4f} | {e.sd_posterior:.4f} | {e.error_to_spread[1]:.2f} |")
     print("\n| field | layer | RMSE prior | RMSE posterior | sd prior | sd posterior |")
     print("|---|---|---|---|---|---|")
     by = {(r["ensemble"], r["field"], r["layer"]): r for r in layers}

@@ -8,6 +8,7 @@ run happens), one assimilation, and the session's Prefect server (conftest.prefe
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from collections import Counter
@@ -51,3 +52,6 @@ def test_every_member_runs_once_in_a_dask_worker(tmp_path, small_case, prefect_a
     assert set(calls.values()) == {1}
     assert store.latest("dask", FORECAST_STEP) is not None
     assert store.latest("dask", REPORT_STEP) is not None
+    # the command's last words: the spread each field kept (issue 41: does it collapse?)
+    assert re.search(r"field poro: the posterior keeps \d+% of the prior's spread", out), out
+    assert re.search(r"field permx: the posterior keeps \d+% of the prior's spread", out), out

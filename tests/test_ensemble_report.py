@@ -5,6 +5,8 @@ not blank, each one on the page."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import io
 import json
 
@@ -23,8 +25,10 @@ from hmcore.reporting.ensemble import (
     build,
     expected_figures,
     field_layer_maps,
+    field_spreads,
     forecast_with_truth,
     mean_and_std,
+    spread_markdown,
     to_layers,
 )
 from hmcore.reporting.ensemble_truth import FieldTruth, read_truth, truth_curves
@@ -176,11 +180,37 @@ def test_without_a_truth_the_table_has_no_truth_column_and_the_maps_four_panels(
     report = build(data)
     assert "truth in [P90, P10]" not in report.markdown
     assert "Truth: unknown" in report.markdown
+    # the fields' spread, in the report and its JSON (None where the truth would be)
+    assert spread_markdown(field_spreads(data)) in report.markdown
+    assert report.doc["fields"][1]["field"] == "permx"
+    assert report.doc["fields"][1]["rmse_prior"] is None
     layers = field_layer_maps(data, "poro")
     assert len(layers) == 2 and set(layers[0]) == set(figs.MAP_TITLES) - {"truth"}
     with_truth = field_layer_maps(inputs(truth_of(100.0)), "poro")
     np.testing.assert_allclose(with_truth[1]["truth"][np.isfinite(with_truth[1]["truth"])],
                                0.21)
+
+
+def test_the_fields_spread_is_tabled_and_a_posterior_surer_than_right_is_called_collapsed():
+    """The posterior keeps 30 % of the prior's spread (its members' deviations are 0.3 times
+    the prior's); without a truth that is all the table says. A truth 0.1 from the members'
+    mean in every cell (about 11 posterior spreads) makes the posterior collapsed; a truth at
+    the posterior's mean does not."""
+    data = inputs()
+    table = spread_markdown(field_spreads(data))
+    assert "| field | space | spread prior | spread posterior | kept |\n" in table
+    permx = next(f for f in field_spreads(data) if f.field == "permx")
+    assert permx.kept == pytest.approx(0.3) and "| permx | log10 |" in table
+    assert np.isnan(permx.rmse_prior) and not permx.collapsed
+    kept = np.delete(data.posterior["poro"], 1, axis=0)
+    for truth, collapsed in ((kept.mean(axis=0) + 0.1, True), (kept.mean(axis=0), False)):
+        known = replace(data, truth=FieldTruth({"poro": truth}, None, "hand"))
+        poro = field_spreads(known)[0]
+        assert poro.collapsed is collapsed
+        assert poro.rmse_posterior == pytest.approx(0.1 if collapsed else 0.0, abs=1e-9)
+        assert poro.sd_posterior == pytest.approx(np.sqrt(np.mean(kept.var(axis=0, ddof=1))))
+        assert ("| **yes** |" if collapsed else "| no |") in spread_markdown(
+            field_spreads(known))
 
 
 def test_the_posterior_map_is_the_mean_of_the_members_kept():

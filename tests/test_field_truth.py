@@ -163,11 +163,18 @@ def test_reveal_judges_the_bands_and_the_mean_fields_from_the_store(stored):
     # and no truth of FGPT (NaN): judged only where the forecast and the truth both have it
     assert not r.fopt_inside and r.check("posterior", "FIELD", "FOPT").members == 3
     errors = {e.field: e for e in r.errors}
-    assert errors["poro"].prior == pytest.approx(0.05, abs=1e-6)
-    assert errors["poro"].posterior == pytest.approx(0.01, abs=1e-6)  # the left-out NaN skipped
-    assert errors["permx"].prior == pytest.approx(0.5, abs=1e-6)
-    assert errors["permx"].posterior == pytest.approx(0.1, abs=1e-6)
+    assert errors["poro"].rmse_prior == pytest.approx(0.05, abs=1e-6)
+    assert errors["poro"].rmse_posterior == pytest.approx(0.01, abs=1e-6)  # the left-out NaN skipped
+    assert errors["permx"].rmse_prior == pytest.approx(0.5, abs=1e-6)
+    assert errors["permx"].rmse_posterior == pytest.approx(0.1, abs=1e-6)
     assert errors["permx"].space == "log10"
+    # the spread: members 0.2/0.3 (sd 0.0577), the truth 0.866 sd from their mean, as a member
+    # is; the posterior's three members all alike: no spread, an error: collapsed
+    assert errors["poro"].sd_prior == pytest.approx(np.sqrt(1 / 300), rel=1e-5)
+    assert errors["poro"].error_to_spread[0] == pytest.approx(0.866, abs=1e-3)
+    assert errors["permx"].error_to_spread[0] == pytest.approx(0.866, abs=1e-3)
+    assert errors["poro"].sd_posterior == pytest.approx(0.0, abs=1e-6)
+    assert errors["poro"].collapsed and errors["permx"].collapsed
 
 
 def test_a_band_of_one_value_holds_a_truth_equal_to_it_within_the_simulators_convergence():
@@ -198,6 +205,7 @@ def test_the_reveal_command_prints_the_verdict_and_refuses_bad_input(stored, res
     assert "prior: 2 of 2 quantities inside P10-P90" in text
     assert "posterior: 1 of 2 quantities inside P10-P90" in text
     assert "field poro (value): RMSE of the mean to the truth, prior 0.05 -> posterior 0.01" in text
+    assert "the members' spread 0.05774 -> 0; RMSE/spread 0.87 -> inf (collapsed" in text
     assert "FOPT OUTSIDE" in text and "Traceback" not in out.output
     missing, text = invoke(["reveal", "--hidden", str(hidden), "--campaign", "nope",
                             "--storage", str(storage)])

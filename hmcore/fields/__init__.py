@@ -18,7 +18,8 @@ ES-MDA update, ask/tell), :mod:`~hmcore.fields.members` (an ensemble as a table 
 per member; a member's run: its INCLUDE at the end of GRID, around the caller's simulator),
 :mod:`~hmcore.fields.assimilation` (one ES-MDA run step by step: the prior, the data as the
 smoother sees them, the update from the members' records), :mod:`~hmcore.fields.forecast`
-(P90/P50/P10 of the prior and the posterior).
+(P90/P50/P10 of the prior and the posterior), :mod:`~hmcore.fields.spread` (the spread kept,
+and a collapse against a known truth).
 
 Free of Prefect and storage; it never starts a simulator (``members.MemberSimulator`` wraps
 the one its caller gives). Nothing is imported here, so that reading a case file (``spec``)

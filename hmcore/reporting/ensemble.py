@@ -30,13 +30,14 @@ import pandas as pd
 from markdown_it import MarkdownIt
 
 from hmcore.fields.spec import FieldSpec
+from hmcore.fields.spread import COLLAPSED, FieldSpread, field_spread
 from hmcore.ordering import natural_key
 from hmcore.reporting import ensemble_figures as figs
 from hmcore.reporting.ensemble_truth import FieldTruth
 from hmcore.reporting.html import plottable_curves, plottable_observed, safe_name, volume_text
 from hmcore.simulation.curves import FIELD
 
-REPORT_VERSION = 1
+REPORT_VERSION = 2  # 2: the fields' spread table (2026-11-28)
 """Bump when the report's content changes for the same stored run."""
 
 
@@ -217,7 +218,10 @@ def build(inputs: EnsembleReportInputs) -> EnsembleReport:
            "forecast": table.to_dict(orient="records"),
            "iterations": inputs.summary.get("iterations", []),
            "runs": inputs.summary.get("runs"), "failed": inputs.summary.get("failed"),
-           "headline": inputs.summary.get("headline")}
+           "headline": inputs.summary.get("headline"),
+           "fields": [{k: v if not isinstance(v, float) or math.isfinite(v) else None
+                       for k, v in {**x.__dict__, "kept": x.kept}.items()}
+                      | {"collapsed": x.collapsed} for x in field_spreads(inputs)]}
     return EnsembleReport(markdown, _html(inputs, markdown, pngs), doc, pngs)
 
 
@@ -258,9 +262,46 @@ def _markdown(inputs: EnsembleReportInputs, table: pd.DataFrame, names: list[str
     lines += _images(names, "well__", "well")
     lines += ["## Fields, layer by layer", "",
               ("Prior and posterior mean and standard deviation over the members (log10 for a "
-               "field updated in log space), and the truth when known."), ""]
+               "field updated in log space), and the truth when known."), "",
+              spread_markdown(field_spreads(inputs)), ""]
     lines += _images(names, "map__", "field map")
     return "\n".join(lines) + "\n"
+
+
+def field_spreads(inputs: EnsembleReportInputs) -> list[FieldSpread]:
+    """Each field's spread, prior and posterior, against the truth's field when known."""
+    truth = inputs.truth.fields if inputs.truth is not None else {}
+    return [field_spread(f.name, inputs.prior[f.name], inputs.posterior[f.name],
+                         truth.get(f.name), "log10" if f.in_log else "value")
+            for f in inputs.fields if f.name in inputs.prior and f.name in inputs.posterior]
+
+
+def spread_markdown(spreads: list[FieldSpread]) -> str:
+    """The spread kept per field; with a truth, the RMSE of each mean to it and the RMSE over
+    the spread (about 1 for a truth like a member; above :data:`COLLAPSED`, collapsed)."""
+    known = any(math.isfinite(x.rmse_prior) for x in spreads)
+    head = ["field", "space", "spread prior", "spread posterior", "kept"]
+    head += ["RMSE of the mean prior", "posterior", "RMSE/spread prior", "posterior",
+             "collapsed"] if known else []
+    out = ["The spread: the root of the mean over cells of the members' variance. Data "
+           "narrow a field where they inform it; an ensemble of few members also narrows it "
+           "where they do not (spurious correlations, which localisation limits)"
+           + (f"; against the truth, an RMSE/spread above {COLLAPSED:g} means the posterior "
+              "is surer than it is right (collapsed)." if known else "."), "",
+           "| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
+    for x in spreads:
+        cells = [x.field, x.space, _num(x.sd_prior), _num(x.sd_posterior),
+                 f"{x.kept:.0%}" if math.isfinite(x.kept) else "n/a"]
+        if known:
+            ratio = x.error_to_spread
+            cells += [_num(x.rmse_prior), _num(x.rmse_posterior), _ratio(ratio[0]),
+                      _ratio(ratio[1]), "**yes**" if x.collapsed else "no"]
+        out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def _ratio(v: float) -> str:
+    return "inf" if v == math.inf else "n/a" if not math.isfinite(v) else f"{v:.2f}"
 
 
 def _images(names: list[str], prefix: str, caption: str) -> list[str]:

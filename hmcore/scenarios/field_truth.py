@@ -46,6 +46,7 @@ from hmcore.fields.layout import Layout
 from hmcore.fields.members import MemberSimulator, ensemble_matrix, ensemble_table
 from hmcore.fields.prior import draw_prior
 from hmcore.fields.spec import FieldSpec, FilesPrior
+from hmcore.fields.spread import FieldSpread, field_spread
 from hmcore.model.case import Case
 from hmcore.scenarios.hidden import noisy_history
 from hmcore.scoring.evaluation import evaluate, simulator_for
@@ -314,23 +315,12 @@ class QuantityCheck:
 
 
 @dataclass(frozen=True)
-class FieldError:
-    """RMSE, over the active cells in update space, of the prior's and the posterior's mean
-    field to the truth."""
-
-    field: str
-    space: str
-    prior: float
-    posterior: float
-
-
-@dataclass(frozen=True)
 class FieldReveal:
     """An ensemble run judged against the truth it was run on (:func:`reveal_field_truth`)."""
 
     campaign: str
     checks: tuple[QuantityCheck, ...]
-    errors: tuple[FieldError, ...]
+    errors: tuple[FieldSpread, ...]
     posterior_iteration: int
 
     def check(self, ensemble: str, well: str, quantity: str) -> QuantityCheck | None:
@@ -381,13 +371,14 @@ def reveal_field_truth(hidden: Path, storage: Path, campaign: str) -> FieldRevea
 
 
 def field_errors(doc: dict, store: ArtifactStore, campaign: str, last: int
-                 ) -> tuple[FieldError, ...]:
+                 ) -> tuple[FieldSpread, ...]:
     """Per field of the truth: RMSE of the mean of ``ensemble-00`` and of ``ensemble-<last>``
-    (members left out, NaN, not counted) to the truth's values."""
+    (members left out, NaN, not counted) to the truth's values, and their spreads."""
     truth_layout = Layout(tuple(doc["layout"]["fields"]), tuple(doc["layout"]["scalars"]),
                           int(doc["layout"]["n_active"]))
     truth = ensemble_matrix(pd.read_parquet(doc["truth_table"]), truth_layout)[0]
-    means = []
+    spaces = {f["name"]: f["space"] for f in doc["fields"]}
+    ensembles = []
     for i in (0, last):
         version = store.latest(campaign, ensemble_step(i))
         if version is None:
@@ -398,12 +389,10 @@ def field_errors(doc: dict, store: ArtifactStore, campaign: str, last: int
             raise ValueError(f"--campaign {campaign}: its fields {list(layout.fields)} on "
                              f"{layout.n_active} cells are not the truth's "
                              f"{list(truth_layout.fields)} on {truth_layout.n_active}")
-        X = ensemble_matrix(version.read_parquet(ENSEMBLE_FILE), layout)
-        means.append(X[np.isfinite(X).all(axis=1)].astype(np.float64).mean(axis=0))
-    spaces = {f["name"]: f["space"] for f in doc["fields"]}
+        ensembles.append(ensemble_matrix(version.read_parquet(ENSEMBLE_FILE), layout))
     out = []
     for name in truth_layout.fields:
         cols = truth_layout.columns(name)
-        rmse = [float(np.sqrt(np.mean((m[cols] - truth[cols]) ** 2))) for m in means]
-        out.append(FieldError(name, spaces.get(name, ""), rmse[0], rmse[1]))
+        out.append(field_spread(name, ensembles[0][:, cols], ensembles[1][:, cols],
+                                truth[cols], spaces.get(name, "")))
     return tuple(out)

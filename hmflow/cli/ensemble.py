@@ -4,6 +4,7 @@ of the prior and the posterior and one summary line."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Optional
@@ -81,8 +82,18 @@ def ensemble(case: str = typer.Option(..., "--case", help="Case TOML file with k
     except (ValueError, flow_refused()) as exc:
         fail(str(exc))
     print_forecast(storage, name)
+    print_spread(Path(result["report_html"]).with_name("report.json"))
     console.print(result["summary"], highlight=False, soft_wrap=True)
     console.print(f"report: {result['report_html']}", highlight=False, soft_wrap=True)
+
+
+def print_spread(report_json: Path) -> None:
+    """Each field's spread kept by the posterior (and, with a truth, collapsed or not)."""
+    for f in json.loads(report_json.read_text()).get("fields", []):
+        kept = "n/a" if f["kept"] is None else f"{f['kept']:.0%}"
+        console.print(f"field {f['field']}: the posterior keeps {kept} of the prior's spread"
+                      + (" [red](collapsed against the truth)[/]" if f["collapsed"] else ""),
+                      highlight=False)
 
 
 def member_poll(storage: Path, campaign: str, rounds: int, size: int) -> Callable[[], dict]:

@@ -179,8 +179,13 @@ def _reveal_field(hidden: Path, storage: Path, campaign: str) -> None:
         total = sum(c.ensemble == e for c in r.checks)
         console.print(f"{e}: {n} of {total} quantities inside P10-P90", highlight=False)
     for e in r.errors:
+        ratio = e.error_to_spread
         console.print(f"field {e.field} ({e.space}): RMSE of the mean to the truth, prior "
-                      f"{e.prior:.4g} -> posterior {e.posterior:.4g}", highlight=False)
+                      f"{e.rmse_prior:.4g} -> posterior {e.rmse_posterior:.4g}; the members' spread "
+                      f"{e.sd_prior:.4g} -> {e.sd_posterior:.4g}; RMSE/spread {ratio[0]:.2f} "
+                      f"-> {ratio[1]:.2f}" + (
+                          " [red](collapsed: the ensemble is surer than it is right)[/]"
+                          if e.collapsed else ""), highlight=False, soft_wrap=True)
     console.print("[bold green]FOPT INSIDE[/]" if r.fopt_inside else "[bold red]FOPT OUTSIDE[/]")
     if not r.fopt_inside:
         raise typer.Exit(1)
