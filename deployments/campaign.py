@@ -1,22 +1,35 @@
-"""Deploy hmflow's campaign flow on a schedule, and its report-only flow, to a process work pool.
+"""Deploy hmflow's campaign flow or its ensemble flow on a schedule, and the report-only flow, to
+a process work pool.
 
-Both deployments load their flow from this repository checkout (``flow.from_source`` with a
+The deployments load their flow from this repository checkout (``flow.from_source`` with a
 local directory: the deployment's pull step is ``set_working_directory: <repo root>``), so no
 Docker image and no remote code storage are needed; a ``prefect worker start --pool POOL`` on a
 machine with this checkout and its virtualenv runs them, each flow run in a subprocess of the
-worker. The artifact store path in the parameters is made absolute here, so the worker's working
-directory does not matter.
+worker. The artifact store path and a case file path in the parameters are made absolute here,
+so the worker's working directory does not matter.
+
+``hmflow-campaign/NAME`` (``flows/campaign.py:campaign_flow``) calibrates a case's scalar
+parameters with a method; ``hmflow-ensemble/NAME`` (``flows/ensemble.py:ensemble_flow``) matches
+a case's ``kind = "field"`` parameters by ES-MDA (size, weights and seed from the case's
+``[ensemble]`` section); ``hmflow-report/NAME-report`` (``flows/report.py:report_flow``) rebuilds
+either one's report from the store (it reads which kind the stored name is bound to).
 
 Python::
 
-    from deployments.campaign import campaign_parameters, deploy_campaign, deploy_report, ensure_work_pool
+    from deployments.campaign import (campaign_parameters, deploy_campaign, deploy_ensemble,
+                                      deploy_report, ensemble_parameters, ensure_work_pool)
 
     ensure_work_pool("hmflow-process")
     params = campaign_parameters(case="synthetic", agent="lm", budget=200, storage="/data/hm")
     deploy_campaign("nightly", cron="0 2 * * *", timezone="UTC", parameters=params)
-    deploy_report("nightly", storage=params["storage"], campaign=params["campaign"])
+    deploy_report("nightly-report", storage=params["storage"], campaign=params["campaign"])
 
-Command line (creates the pool if missing, then deploys both)::
+    fields = ensemble_parameters(case="fields/case.toml", workers=4, storage="/data/hm")
+    deploy_ensemble("weekly-esmda", cron="0 3 * * 6", parameters=fields)
+    deploy_report("weekly-esmda-report", storage=fields["storage"], campaign=fields["campaign"])
+
+Command line (creates the pool if missing, then deploys the campaign and its report; an
+ensemble is deployed by ``hmflow deploy``, which chooses the flow from the case)::
 
     python -m deployments.campaign --case synthetic --budget 200 --storage /data/hm
 """
@@ -34,8 +47,10 @@ from hmcore.cases import BUILTIN_CASES, case_name
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CAMPAIGN_ENTRYPOINT = "flows/campaign.py:campaign_flow"
+ENSEMBLE_ENTRYPOINT = "flows/ensemble.py:ensemble_flow"
 REPORT_ENTRYPOINT = "flows/report.py:report_flow"
 CAMPAIGN_FLOW_NAME = "hmflow-campaign"
+ENSEMBLE_FLOW_NAME = "hmflow-ensemble"
 REPORT_FLOW_NAME = "hmflow-report"
 DEFAULT_POOL = "hmflow-process"
 DEFAULT_NAME = "nightly"
@@ -60,7 +75,8 @@ def ensure_work_pool(name: str = DEFAULT_POOL):
                 pool = client.create_work_pool(WorkPoolCreate(
                     name=name, type=ProcessWorker.type,
                     base_job_template=ProcessWorker.get_default_base_job_template(),
-                    description="hmflow: campaign and report flows in local subprocesses"))
+                    description="hmflow: campaign, ensemble and report flows in local "
+                                "subprocesses"))
             except ObjectAlreadyExists:  # created concurrently
                 pool = client.read_work_pool(name)
     if pool.type != ProcessWorker.type:
@@ -79,20 +95,38 @@ def campaign_parameters(case: str = "synthetic", agent: str = DEFAULT_AGENT, bud
     that every scheduled run resumes the same campaign and the report deployment can name it."""
     from hmcore.calibration.registry import default_campaign_name
 
-    case = str(case)
-    if case not in BUILTIN_CASES:
-        case = str(Path(case).expanduser().resolve())
-    params: dict[str, Any] = {
-        "case": case, "agent": agent, "budget": int(budget), "workers": int(workers),
-        "seed": int(seed), "storage": str(Path(storage).expanduser().resolve()),
-        "campaign": campaign or default_campaign_name(case_name(case), agent, int(seed))}
+    params = _absolute_paths({
+        "case": str(case), "agent": agent, "budget": int(budget), "workers": int(workers),
+        "seed": int(seed), "storage": storage,
+        "campaign": campaign or default_campaign_name(case_name(case), agent, int(seed))})
     if agent_settings:
         params["agent_settings"] = dict(agent_settings)
-    if task_runner != "threads" or dask_address:  # where the simulator calls run (docs/cluster.md)
-        params["task_runner"] = task_runner
-        if dask_address:
-            params["dask_address"] = dask_address
-    return params
+    return {**params, **_runner_parameters(task_runner, dask_address)}
+
+
+def ensemble_parameters(case: str | Path, workers: int = 2,
+                        storage: str | Path = DEFAULT_STORAGE, campaign: str | None = None,
+                        task_runner: str = "threads",
+                        dask_address: str | None = None) -> dict[str, Any]:
+    """Parameters of ``ensemble_flow`` for a deployment: case file and storage made absolute
+    and the run's name fixed (default CASE-ensemble, as ``hmflow ensemble`` names it), so that
+    every scheduled run resumes the same ensemble run and the report deployment can name it.
+    The ensemble's size, weights and seed are the case's ``[ensemble]`` section."""
+    # flows.ensemble imports Prefect: only when an ensemble is deployed (as Prefect below)
+    from flows.ensemble import default_ensemble_name
+
+    params = _absolute_paths({
+        "case": str(case), "workers": int(workers), "storage": storage,
+        "campaign": campaign or default_ensemble_name(case_name(case))})
+    return {**params, **_runner_parameters(task_runner, dask_address)}
+
+
+def _runner_parameters(task_runner: str, dask_address: str | None) -> dict[str, Any]:
+    """Where the simulator calls run (docs/cluster.md), given only when not the default."""
+    if task_runner == "threads" and not dask_address:
+        return {}
+    return {"task_runner": task_runner, **({"dask_address": dask_address} if dask_address
+                                           else {})}
 
 
 def _absolute_paths(parameters: dict[str, Any]) -> dict[str, Any]:
@@ -130,8 +164,8 @@ def list_deployments() -> list[dict[str, Any]]:
     out = []
     with get_client(sync_client=True) as client:
         flows = {f.id: f.name for f in client.read_flows(
-            flow_filter=FlowFilter(name=FlowFilterName(any_=[CAMPAIGN_FLOW_NAME,
-                                                             REPORT_FLOW_NAME])), limit=50)}
+            flow_filter=FlowFilter(name=FlowFilterName(any_=[
+                CAMPAIGN_FLOW_NAME, ENSEMBLE_FLOW_NAME, REPORT_FLOW_NAME])), limit=50)}
         if not flows:
             return out
         for dep in client.read_deployments(flow_filter=FlowFilter(
@@ -158,44 +192,73 @@ def deploy_campaign(name: str = DEFAULT_NAME, cron: str | None = DEFAULT_CRON,
     ``parameters`` are the flow's parameters (see :func:`campaign_parameters`); ``storage`` and
     a case file path are made absolute. ``concurrency_limit`` (default 1) is the deployment's
     Prefect concurrency limit, so that two runs do not work on the same campaign at once."""
-    from datetime import timedelta
-
-    from prefect import Flow
-    from prefect.schedules import Cron, Interval
-
     params = _absolute_paths(parameters or campaign_parameters())
-    flow = Flow.from_source(source=str(REPO_ROOT), entrypoint=CAMPAIGN_ENTRYPOINT)
-    if cron and interval_s:
-        raise ValueError("give a cron or an interval, not both")
-    schedules = ([Cron(cron, timezone=timezone)] if cron else
-                 [Interval(timedelta(seconds=interval_s))] if interval_s else None)
-    deployment = flow.to_deployment(
-        name=name, work_pool_name=work_pool, schedules=schedules, parameters=params,
-        paused=paused, concurrency_limit=concurrency_limit, tags=tags or ["hmflow"],
-        description=(f"hmflow campaign {params.get('campaign')}: case {params.get('case')}, agent "
-                     f"{params.get('agent')}, budget {params.get('budget')}, storage "
-                     f"{params['storage']}. A rerun with the same parameters resumes the campaign "
-                     f"(journaled simulator calls are not repeated)."))
-    return _apply(deployment, work_pool)
+    return _deploy(
+        CAMPAIGN_ENTRYPOINT, name, work_pool, params, tags=tags,
+        schedules=_schedules(cron, timezone, interval_s), paused=paused,
+        concurrency_limit=concurrency_limit, description=(
+        f"hmflow campaign {params.get('campaign')}: case {params.get('case')}, agent "
+        f"{params.get('agent')}, budget {params.get('budget')}, storage {params['storage']}. "
+        f"A rerun with the same parameters resumes the campaign (journaled simulator calls "
+        f"are not repeated)."))
+
+
+def deploy_ensemble(name: str, parameters: dict[str, Any], cron: str | None = DEFAULT_CRON,
+                    timezone: str = "UTC", work_pool: str = DEFAULT_POOL, paused: bool = False,
+                    concurrency_limit: int | None = 1, tags: list[str] | None = None,
+                    interval_s: float | None = None) -> UUID:
+    """Deploy ``flows/ensemble.py:ensemble_flow`` from this checkout as
+    ``hmflow-ensemble/<name>``: as :func:`deploy_campaign` (schedule, concurrency limit 1,
+    absolute paths), with the ensemble flow's ``parameters`` (see
+    :func:`ensemble_parameters`: a case with field parameters); return the deployment id."""
+    params = _absolute_paths(parameters)
+    return _deploy(
+        ENSEMBLE_ENTRYPOINT, name, work_pool, params, tags=tags or ["hmflow", "ensemble"],
+        schedules=_schedules(cron, timezone, interval_s), paused=paused,
+        concurrency_limit=concurrency_limit, description=(
+        f"hmflow ensemble {params.get('campaign')}: ES-MDA on the field parameters of case "
+        f"{params['case']} (its [ensemble] section), storage {params['storage']}. A rerun with "
+        f"the same parameters resumes the run (journaled member runs are not repeated)."))
 
 
 def deploy_report(name: str = DEFAULT_NAME, storage: str | Path = DEFAULT_STORAGE,
                   campaign: str | None = None, work_pool: str = DEFAULT_POOL,
                   tags: list[str] | None = None) -> UUID:
     """Deploy ``flows/report.py:report_flow`` (no schedule) as ``hmflow-report/<name>``: it
-    rebuilds a campaign's report from stored artifacts, with zero simulator calls (named
-    :func:`report_deployment_name` of the campaign's deployment by the CLIs). ``storage``
-    and ``campaign`` are its default parameters (changeable per run from the UI/CLI)."""
+    rebuilds a campaign's or an ensemble run's report from stored artifacts, with zero
+    simulator calls (named :func:`report_deployment_name` of the campaign's or ensemble's
+    deployment by the CLIs). ``storage`` and ``campaign`` are its default parameters
+    (changeable per run from the UI/CLI)."""
+    params = _absolute_paths({"storage": storage, **({"campaign": campaign} if campaign
+                                                    else {})})
+    return _deploy(REPORT_ENTRYPOINT, name, work_pool, params, tags=tags, description=(
+        "Rebuild an hmflow campaign's or ensemble run's report (Markdown + tables, also "
+        "published as Prefect artifacts) from the artifact store; runs no simulation."))
+
+
+def _schedules(cron: str | None, timezone: str, interval_s: float | None) -> list | None:
+    """A cron in ``timezone`` or an interval of ``interval_s`` seconds; None for neither."""
+    from datetime import timedelta
+
+    from prefect.schedules import Cron, Interval
+
+    if cron and interval_s:
+        raise ValueError("give a cron or an interval, not both")
+    return ([Cron(cron, timezone=timezone)] if cron else
+            [Interval(timedelta(seconds=interval_s))] if interval_s else None)
+
+
+def _deploy(entrypoint: str, name: str, work_pool: str, parameters: dict[str, Any], *,
+            description: str, tags: list[str] | None = None, schedules: list | None = None,
+            paused: bool | None = None, concurrency_limit: int | None = None) -> UUID:
+    """The flow at ``entrypoint`` of this checkout as deployment ``name`` on ``work_pool``."""
     from prefect import Flow
 
-    params: dict[str, Any] = {"storage": str(Path(storage).expanduser().resolve())}
-    if campaign:
-        params["campaign"] = campaign
-    flow = Flow.from_source(source=str(REPO_ROOT), entrypoint=REPORT_ENTRYPOINT)
+    flow = Flow.from_source(source=str(REPO_ROOT), entrypoint=entrypoint)
     deployment = flow.to_deployment(
-        name=name, work_pool_name=work_pool, parameters=params, tags=tags or ["hmflow"],
-        description="Rebuild an hmflow campaign's report (Markdown + tables, also published as "
-                    "Prefect artifacts) from the artifact store; runs no simulation.")
+        name=name, work_pool_name=work_pool, schedules=schedules, parameters=parameters,
+        paused=paused, concurrency_limit=concurrency_limit, tags=tags or ["hmflow"],
+        description=description)
     return _apply(deployment, work_pool)
 
 

@@ -4,7 +4,10 @@ PREFECT_HOME, free loopback port: the session's, conftest.prefect_server), a pro
 
 The campaign (the small synthetic case of conftest.small_case, random agent, budget 2, 2 at
 a time) is triggered with ``run_deployment``; then the report-only deployment is run and must
-not simulate anything.
+not simulate anything. The ensemble deployment (the field version of the small case,
+tests/test_ensemble_flow.py's ``field_case``) is deployed and read back from the server, not
+run: its flow is the one tests/test_ensemble_flow.py runs, and its report rerun is the same
+report-only flow (``hmflow report`` rebuilds an ensemble's report there).
 Server, worker and every process they started are stopped in the fixtures' teardown.
 """
 
@@ -20,6 +23,11 @@ from pathlib import Path
 
 import pytest
 from prefect_processes import PREFECT, serve_worker, tail
+from test_ensemble_flow import field_case
+from typer.testing import CliRunner
+
+from hmcore.cases import load_case
+from hmflow.cli import app
 
 REPO = Path(__file__).resolve().parents[1]
 POOL = "hmflow-test-process"
@@ -263,3 +271,135 @@ def test_hmflow_deploy_interval_and_list(prefect_server, tmp_path):
     assert dep.schedules[0].schedule.interval.total_seconds() == 3600
     assert {"hmflow", "case:synthetic", "agent:cmaes"} <= set(dep.tags)
     assert dep.parameters["agent"] == "cmaes" and dep.parameters["budget"] == 8
+
+
+# --------------------------------------------------------------------------------------------
+# the ensemble deployment: deployed and read back, not run (suite time)
+# --------------------------------------------------------------------------------------------
+ENSEMBLE_POOL = "hmflow-ensemble-pool"
+
+
+@pytest.fixture(scope="module")
+def ensemble_case(tmp_path_factory, small_case) -> Path:
+    """The field version of the small case (two fields, no scalar parameter), 2 members."""
+    case, _ = field_case(tmp_path_factory.mktemp("ensemble-deploy") / "case", small_case,
+                         "never-fails", "size = 2\nweights = [1.0]\nmin_realizations = 2\n")
+    return case
+
+
+def _deployment(name: str):
+    """The deployment ``flow/name`` on the test server, or None when there is none."""
+    from prefect.client.orchestration import get_client
+    from prefect.exceptions import ObjectNotFound
+
+    with get_client(sync_client=True) as client:
+        try:
+            return client.read_deployment_by_name(name)
+        except ObjectNotFound:
+            return None
+
+
+def _deploy(*args: str):
+    return CliRunner().invoke(app, ["deploy", *args], env={"COLUMNS": "250", "NO_COLOR": "1"})
+
+
+@pytest.mark.timeout(120)
+def test_ensemble_deployment_runs_the_ensemble_flow_from_this_checkout(
+        api_settings, ensemble_case, tmp_path, monkeypatch):
+    from prefect.client.orchestration import get_client
+
+    from deployments.campaign import deploy_ensemble, ensemble_parameters
+    from flows.ensemble import default_ensemble_name
+
+    monkeypatch.chdir(ensemble_case.parent.parent)  # relative paths, made absolute
+    params = ensemble_parameters(case=f"case/{ensemble_case.name}", workers=2, storage="store")
+    assert params == {"case": str(ensemble_case.resolve()), "workers": 2,
+                      "storage": str((ensemble_case.parent.parent / "store").resolve()),
+                      "campaign": default_ensemble_name(load_case(ensemble_case).name)}
+    assert params["campaign"] == "synthetic-small-ensemble"  # the name `hmflow ensemble` gives
+    dep_id = deploy_ensemble("ens-py", params, cron="0 4 * * 1", work_pool=ENSEMBLE_POOL)
+    with get_client(sync_client=True) as client:
+        dep = client.read_deployment(dep_id)
+        flow = client.read_flow(dep.flow_id)
+    assert flow.name == "hmflow-ensemble" and dep.entrypoint == "flows/ensemble.py:ensemble_flow"
+    assert dep.parameters == params and dep.work_pool_name == ENSEMBLE_POOL
+    # every stored parameter is one of the flow's (the server checks a run's against these)
+    assert set(params) <= set(dep.parameter_openapi_schema["properties"])
+    assert dep.pull_steps == [{"prefect.deployments.steps.set_working_directory":
+                               {"directory": str(REPO)}}]
+    assert dep.schedules[0].schedule.cron == "0 4 * * 1"
+    assert dep.global_concurrency_limit.limit == 1  # two runs never work on one ensemble
+    assert {"hmflow", "ensemble"} <= set(dep.tags)
+
+
+@pytest.mark.timeout(120)
+def test_hmflow_deploy_chooses_the_ensemble_flow_for_a_case_of_fields(
+        api_settings, ensemble_case, tmp_path, restore_env):
+    storage = tmp_path / "store"
+    out = _deploy("--case", str(ensemble_case), "--name", "ens", "--pool", ENSEMBLE_POOL,
+                  "--interval", "86400", "--workers", "3", "--storage", str(storage))
+    assert out.exit_code == 0, out.output
+    text = " ".join(out.output.split())
+    assert "deployment 'hmflow-ensemble/ens'" in text and "every 86400 s" in text
+    assert "has field parameters poro, permx" in text and "2 members, weights [1.0]" in text
+    dep, rep = _deployment("hmflow-ensemble/ens"), _deployment("hmflow-report/ens-report")
+    assert _deployment("hmflow-campaign/ens") is None
+    assert dep.entrypoint == "flows/ensemble.py:ensemble_flow"
+    assert dep.parameters == {"case": str(ensemble_case.resolve()), "workers": 3,
+                              "storage": str(storage.resolve()),
+                              "campaign": "synthetic-small-ensemble"}
+    assert dep.schedules[0].schedule.interval.total_seconds() == 86400
+    assert {"hmflow", "ensemble", "case:synthetic-small"} <= set(dep.tags)
+    assert not {t for t in dep.tags if t.startswith("agent:")}
+    # the report-only rerun: the same flow as a campaign's, on the ensemble's name
+    assert rep.entrypoint == "flows/report.py:report_flow"
+    assert rep.parameters == {"storage": str(storage.resolve()),
+                              "campaign": "synthetic-small-ensemble"}
+
+    listed = _deploy("--list")
+    assert listed.exit_code == 0, listed.output
+    row = next(line for line in listed.output.splitlines() if "hmflow-ensemble/ens " in line)
+    cells = [c.strip() for c in row.split("│") if c.strip()]
+    assert cells[4:] == ["synthetic-small-ensemble", "-", "-"], row  # campaign, agent, budget
+
+
+@pytest.mark.timeout(120)
+def test_hmflow_deploy_refuses_an_ensemble_with_campaign_options_before_deploying(
+        api_settings, ensemble_case, small_case, restore_env):
+    from prefect.client.orchestration import get_client
+    from prefect.exceptions import ObjectNotFound
+
+    pool = "hmflow-refused-pool"
+    out = _deploy("--case", str(ensemble_case), "--name", "refused", "--pool", pool,
+                  "--agent", "lm", "--seed", "3", "--cron", "0 1 * * *", "--interval", "60")
+    assert out.exit_code == 2, out.output
+    text = " ".join(out.output.split())
+    # every problem at once, one line each
+    assert "give --cron or --interval, not both" in text
+    assert ("--agent, --seed do not apply to an ensemble deployment (case synthetic-small has "
+            "field parameters poro, permx -> the ensemble flow") in text
+    assert "--budget" not in text  # only the options given are named
+    assert "--flow campaign" not in text  # the case has no scalar parameter to calibrate
+    assert _deployment("hmflow-ensemble/refused") is None
+    assert _deployment("hmflow-report/refused-report") is None
+    with get_client(sync_client=True) as client, pytest.raises(ObjectNotFound):
+        client.read_work_pool(pool)  # not even the pool
+
+    # an explicit flow is held to that flow's rules of the case
+    fields_as_campaign = _deploy("--case", str(ensemble_case), "--flow", "campaign",
+                                 "--pool", pool)
+    assert fields_as_campaign.exit_code == 2
+    assert "has field parameters only (poro, permx)" in " ".join(
+        fields_as_campaign.output.split())
+    scalars_as_ensemble = _deploy("--case", str(small_case), "--flow", "ensemble", "--pool",
+                                  pool, "--budget", "4")
+    assert scalars_as_ensemble.exit_code == 2
+    text = " ".join(scalars_as_ensemble.output.split())
+    assert "has no field parameter for an ensemble to match" in text
+    assert "--budget does not apply to an ensemble deployment" in text
+    assert "or give --flow campaign" in text  # the small case has scalar parameters
+    unknown = _deploy("--case", str(ensemble_case), "--flow", "esmda", "--pool", pool)
+    assert unknown.exit_code == 2
+    assert "--flow must be one of ['campaign', 'ensemble'], got 'esmda'" in unknown.output
+    with get_client(sync_client=True) as client, pytest.raises(ObjectNotFound):
+        client.read_work_pool(pool)
