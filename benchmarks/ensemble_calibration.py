@@ -85,7 +85,8 @@ def judged_rows(truth: int, label: str, hidden: Path, store: Path, campaign: str
               for c in revealed.checks]
     errors = [{"truth": truth, "variant": label, "field": e.field, "space": e.space,
                "rmse_prior": e.rmse_prior, "rmse_posterior": e.rmse_posterior, "sd_prior": e.sd_prior,
-               "sd_posterior": e.sd_posterior, "collapsed": e.collapsed}
+               "sd_posterior": e.sd_posterior, "collapsed": e.collapsed,
+               "prior_holds_truth": e.prior_holds_truth}
               for e in revealed.errors]
     return checks, errors
 

@@ -220,7 +220,8 @@ def main() -> None:
               "command_seconds": seconds, "fopt_inside": revealed.fopt_inside,
               "checks": [{**c.__dict__, "inside": c.inside, "width": c.width}
                          for c in revealed.checks],
-              "errors": [{**e.__dict__, "collapsed": e.collapsed} for e in revealed.errors], "layers": layers,
+              "errors": [{**e.__dict__, "collapsed": e.collapsed,
+                         "prior_holds_truth": e.prior_holds_truth} for e in revealed.errors], "layers": layers,
               "rounds": summary["iterations"], "updates": summary["updates"], "cost": spent}
     (out / f"{args.campaign}.json").write_text(json.dumps(result, indent=2, default=str) + "\n")
     print(f"## {args.campaign}: {settings['ensemble']}\n")

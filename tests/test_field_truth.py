@@ -205,7 +205,8 @@ def test_the_reveal_command_prints_the_verdict_and_refuses_bad_input(stored, res
     assert "prior: 2 of 2 quantities inside P10-P90" in text
     assert "posterior: 1 of 2 quantities inside P10-P90" in text
     assert "field poro (value): RMSE of the mean to the truth, prior 0.05 -> posterior 0.01" in text
-    assert "the members' spread 0.05774 -> 0; RMSE/spread 0.87 -> inf (collapsed" in text
+    assert "the members' spread 0.05774 -> 0; RMSE/spread 0.87 -> inf (collapsed: the update" \
+        in text
     assert "FOPT OUTSIDE" in text and "Traceback" not in out.output
     missing, text = invoke(["reveal", "--hidden", str(hidden), "--campaign", "nope",
                             "--storage", str(storage)])

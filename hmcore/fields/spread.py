@@ -5,8 +5,9 @@ data say nothing: the spurious correlations of a small ensemble (Emerick & Reyno
 Evensen 2009, ch. 15), which localisation limits. The spread left is not wrong by itself
 (data that inform a field should narrow it); against a known truth it is: a truth drawn like
 a member lies, on average over the cells, about one spread from the members' mean (times
-sqrt(1 + 1/N)), and an ensemble whose mean is :data:`COLLAPSED` spreads or more from the
-truth is surer than it is right.
+sqrt(1 + 1/N)). A posterior whose mean is :data:`COLLAPSED` times farther from the truth,
+in its own spreads, than the prior's was is surer than it is right: the update collapsed it.
+A prior already that far from the truth misses it, which no update repairs.
 
 Pure numpy: ``(members, cells)`` in update space in, floats out; a member left out of an
 update is a row of NaN and is not counted.
@@ -20,10 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 COLLAPSED = 2.0
-"""RMSE of the mean to the truth over the members' spread above which a posterior is called
-collapsed: the members are, on average over the cells, half as spread as their mean is far
-from the truth (a truth drawn from the prior gives 0.9-1.1 for the prior, measured on the
-small field case's hidden truths)."""
+"""The factor on RMSE of the mean to the truth over the members' spread: above it for the
+prior, the prior misses the truth; above it times the prior's (at least 1) for the posterior,
+the update collapsed the ensemble (the members are, on average over the cells, less than half
+as spread as their mean is far from the truth, and the update made it so)."""
 
 
 def kept(members: np.ndarray) -> np.ndarray:
@@ -81,9 +82,20 @@ class FieldSpread:
                 error_to_spread(self.rmse_posterior, self.sd_posterior))
 
     @property
+    def prior_holds_truth(self) -> bool:
+        """The prior's RMSE over spread at most :data:`COLLAPSED`: the truth is within the
+        prior's reach (True when unknown, as nothing says otherwise)."""
+        return not self.error_to_spread[0] > COLLAPSED
+
+    @property
     def collapsed(self) -> bool:
-        """The posterior's RMSE over spread above :data:`COLLAPSED` (False when unknown)."""
-        return bool(self.error_to_spread[1] > COLLAPSED)
+        """The update made the ensemble surer than right: the posterior's RMSE over spread
+        above :data:`COLLAPSED` times the prior's (or times 1, when the prior's is below 1).
+        A prior that misses the truth already (PUNQ-S3's first prior: 2.6) is not called
+        collapsed for keeping that distance (False when the truth is unknown)."""
+        prior, posterior = self.error_to_spread
+        base = max(1.0, prior) if math.isfinite(prior) else 1.0
+        return bool(posterior > COLLAPSED * base)
 
 
 def field_spread(field: str, prior: np.ndarray, posterior: np.ndarray,

@@ -221,7 +221,8 @@ def build(inputs: EnsembleReportInputs) -> EnsembleReport:
            "headline": inputs.summary.get("headline"),
            "fields": [{k: v if not isinstance(v, float) or math.isfinite(v) else None
                        for k, v in {**x.__dict__, "kept": x.kept}.items()}
-                      | {"collapsed": x.collapsed} for x in field_spreads(inputs)]}
+                      | {"collapsed": x.collapsed, "prior_holds_truth": x.prior_holds_truth}
+                      for x in field_spreads(inputs)]}
     return EnsembleReport(markdown, _html(inputs, markdown, pngs), doc, pngs)
 
 
@@ -286,8 +287,10 @@ def spread_markdown(spreads: list[FieldSpread]) -> str:
     out = ["The spread: the root of the mean over cells of the members' variance. Data "
            "narrow a field where they inform it; an ensemble of few members also narrows it "
            "where they do not (spurious correlations, which localisation limits)"
-           + (f"; against the truth, an RMSE/spread above {COLLAPSED:g} means the posterior "
-              "is surer than it is right (collapsed)." if known else "."), "",
+           + (f"; against the truth, RMSE/spread is about 1 for a truth like a member, above "
+              f"{COLLAPSED:g} the prior misses the truth, and a posterior's above {COLLAPSED:g} "
+              "times the prior's (at least 1) is surer than it is right: the update collapsed "
+              "it." if known else "."), "",
            "| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
     for x in spreads:
         cells = [x.field, x.space, _num(x.sd_prior), _num(x.sd_posterior),
@@ -295,7 +298,8 @@ def spread_markdown(spreads: list[FieldSpread]) -> str:
         if known:
             ratio = x.error_to_spread
             cells += [_num(x.rmse_prior), _num(x.rmse_posterior), _ratio(ratio[0]),
-                      _ratio(ratio[1]), "**yes**" if x.collapsed else "no"]
+                      _ratio(ratio[1]), ("**yes**" if x.collapsed else "no")
+                      + ("" if x.prior_holds_truth else " (the prior misses the truth)")]
         out.append("| " + " | ".join(cells) + " |")
     return "\n".join(out)
 

@@ -184,8 +184,10 @@ def _reveal_field(hidden: Path, storage: Path, campaign: str) -> None:
                       f"{e.rmse_prior:.4g} -> posterior {e.rmse_posterior:.4g}; the members' spread "
                       f"{e.sd_prior:.4g} -> {e.sd_posterior:.4g}; RMSE/spread {ratio[0]:.2f} "
                       f"-> {ratio[1]:.2f}" + (
-                          " [red](collapsed: the ensemble is surer than it is right)[/]"
-                          if e.collapsed else ""), highlight=False, soft_wrap=True)
+                          " [red](collapsed: the update made it surer than it is right)[/]"
+                          if e.collapsed else "") + (
+                          "" if e.prior_holds_truth else " (the prior misses the truth)"),
+                      highlight=False, soft_wrap=True)
     console.print("[bold green]FOPT INSIDE[/]" if r.fopt_inside else "[bold red]FOPT OUTSIDE[/]")
     if not r.fopt_inside:
         raise typer.Exit(1)
