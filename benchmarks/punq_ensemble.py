@@ -122,13 +122,21 @@ def write_deck_truth(case_path: Path, out: Path) -> Path:
     return doc_path
 
 
+def toml_value(text: str):
+    """A ``--set`` value as TOML reads it (``1500``, ``[4, 2, 1]``, ``"distance"``), a bare
+    word as a string (``distance``)."""
+    try:
+        return tomlkit.parse(f"v = {text}")["v"]
+    except tomlkit.exceptions.ParseError:
+        return text
+
+
 def case_with(case_path: Path, sets: list[str], out: Path, truth_json: Path) -> Path:
     """A copy of the case file in ``out`` with ``[ensemble]`` keys changed
     (``ensemble_calibration.case_copy``) and the truth's ``hidden_truth.json`` beside it, so
     that the ensemble's report draws the truth in its fans and maps (it looks beside the case
     file, as for ``hmflow hide``'s cases)."""
-    keys = {k.strip(): tomlkit.parse(f"v = {v.strip()}")["v"]
-            for k, _, v in (item.partition("=") for item in sets)}
+    keys = {k.strip(): toml_value(v.strip()) for k, _, v in (item.partition("=") for item in sets)}
     case = case_copy(case_path, keys, out)
     beside = case.parent / TRUTH_JSON
     if not beside.is_file() or beside.read_text() != truth_json.read_text():
