@@ -6,6 +6,7 @@ import json
 import shutil
 from pathlib import Path
 
+import pandas as pd
 from prefect import task
 from prefect.artifacts import create_link_artifact, create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
@@ -19,6 +20,8 @@ from hmcore.reporting.html import ReportInputs, render
 from hmcore.reporting.paper_tables import paper_tables
 from hmcore.reporting.report import Choice, build_report, to_jsonable
 from hmcore.reporting.results import results_table
+from hmcore.scoring.information import information_table
+from hmcore.scoring.noise_table import flagged_series
 from hmcore.scoring.observations import ObservationSet
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version, sha256_json
 from tasks.curves import collect
@@ -129,16 +132,16 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     noise = (noise_from.read_parquet("noise.parquet") if "noise.parquet" in noise_from.files
              else None)
     scores = results.read_json("records.json") if results is not None else {}
+    choice = Choice(scores.get("objective", "E"), scores.get("noise"), scores.get("references"))
+    plots = {name: diagnosis.file(name).read_bytes()
+             for name in (diagnosis_doc or {}).get("plots", []) if name in diagnosis.files}
+    page = report_inputs(store, campaign, case_doc, table, best_doc, truth, curves,
+                         diagnosis_doc, _diagnosis_markdown(diagnosis_doc),
+                         {n: b for n, b in plots.items() if n.endswith(".png")}, noise, choice)
     markdown, doc = build_report(campaign, case_doc, table, best_doc, truth, diagnosis_doc,
-                                 noise, Choice(scores.get("objective", "E"),
-                                               scores.get("noise"), scores.get("references")))
-    files: dict = {"report.md": markdown, "report.json": doc}
-    for name in (diagnosis_doc or {}).get("plots", []):
-        if name in diagnosis.files:
-            files[name] = diagnosis.file(name).read_bytes()
-    html, pngs = render(report_inputs(store, campaign, case_doc, table, best_doc, truth,
-                                      curves, diagnosis_doc, _diagnosis_markdown(diagnosis_doc),
-                                      {n: files[n] for n in files if n.endswith(".png")}))
+                                 noise, choice, page.information)
+    files: dict = {"report.md": markdown, "report.json": doc, **plots}
+    html, pngs = render(page)
     files["report.html"] = html
     files.update({n: b for n, b in pngs.items() if not n.startswith("diagnosis__")})
     version = store.put_files(campaign, "report", inputs, files, code_version())
@@ -147,7 +150,7 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     return version
 
 
-REPORT_VERSION = 2  # 2: report.html; a report of other content is another version
+REPORT_VERSION = 3  # 2: report.html; 3: held-back history, information, calls in words
 
 
 def campaign_reference(store: ArtifactStore, campaign: str) -> str:
@@ -166,10 +169,11 @@ def _diagnosis_markdown(diagnosis_doc: dict | None) -> str | None:
 
 def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, best_doc,
                   truth, curves: ArtifactVersion | None, diagnosis_doc: dict | None,
-                  diagnosis_markdown: str | None, diagnosis_pngs: dict) -> ReportInputs:
-    """Load what report.html is drawn from (stored artifacts only)."""
-    import pandas as pd
-
+                  diagnosis_markdown: str | None, diagnosis_pngs: dict,
+                  noise: pd.DataFrame | None = None, choice: Choice | None = None
+                  ) -> ReportInputs:
+    """Load what report.html is drawn from (stored artifacts only); ``noise``: the noise the
+    fit assumed (its summary table), ``choice``: what chose the best call."""
     case = store.latest(campaign, "case")
     observed = case.read_parquet("observed.parquet") if "observed.parquet" in case.files \
         else None
@@ -202,7 +206,20 @@ def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, be
         forecast=curves.read_parquet("forecast.parquet") if curves is not None else None,
         forecast_doc=forecast_doc, references={k: v for k, v in refs.items() if v is not None},
         truth=truth, diagnosis_markdown=diagnosis_markdown,
-        diagnosis_figures=diagnosis_pngs, code=code_version())
+        diagnosis_figures=diagnosis_pngs, code=code_version(), choice=choice, noise=noise,
+        information=_information(observed, obs_rows, noise, history_end))
+
+
+def _information(observed: pd.DataFrame | None, rows: pd.DataFrame | None,
+                 noise: pd.DataFrame | None, history_end: float | None) -> pd.DataFrame | None:
+    """Which responses carry information (:func:`hmcore.scoring.information.information_table`)
+    from the weighed rows, the history's controlled rows and the noise summary's flags."""
+    if rows is None:
+        return None
+    controlled = None
+    if observed is not None and "controlled" in observed:
+        controlled = observed[observed.controlled.astype(bool)]
+    return information_table(rows, controlled, flagged_series(noise, rows), history_end)
 
 
 def publish(campaign: str, markdown: str, best_doc: dict | None, report_html: Path) -> None:

@@ -1,19 +1,35 @@
 """report.html of a real small campaign (OPM Flow, Prefect, Parquet) opened in a real headless
 browser (Debian's chromium): every expected figure is on the page, decoded and not one flat
 colour; the diagnosis section is there exactly when the campaign has a diagnosis; the
-forecast reports the known truth's cumulative oil beside P90/P50/P10."""
+forecast reports the known truth's cumulative oil beside P90/P50/P10. A first reading of the
+page finds the best case, its held-back E and tables, which responses carry information (the
+rate control and a dry well's water marked, not scored), and the calls as valid, penalised or
+failed with the physics checks in words; the same words in report.md and report.json."""
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
+from html.parser import HTMLParser
 
 import numpy as np
 import pandas as pd
 import pytest
 from conftest import cli_env
 from test_ui_browser import CHROMIUM
+
+from hmcore.model.case import PhysicsSettings
+from hmcore.reporting.calls import STATES
+from hmcore.reporting.figures import heatmap_figure
+from hmcore.reporting.html import ReportInputs, render
+from hmcore.reporting.report import build_report
+from hmcore.scenarios.synthetic import ar1_series
+from hmcore.scoring.information import information_table, informative_macro
+from hmcore.scoring.noise import PUNQ_NOISE
+from hmcore.scoring.physics import CHECK_NAMES, Check, check_sentence
+from hmflow.console import STATUS_WORDS
 
 CAMPAIGN = "html-check"
 BUDGET = 4
@@ -130,3 +146,225 @@ def test_the_forecast_reports_the_truths_cumulative_oil_beside_the_band(campaign
                for k in doc["member_calls"]]
     assert oil.P50 == pytest.approx(float(np.median(members)))
     assert len(set(pd.unique(c.member))) >= 3  # best, truth, centre (and the members)
+
+
+# ------------------------------------------------------------------ a first reading of the page
+class Page(HTMLParser):
+    """A page's text (whitespace collapsed, scripts left out) and its tables, each under the
+    last heading before it (rows of cell texts)."""
+
+    def __init__(self, html: str):
+        super().__init__()
+        self.parts: list[str] = []
+        self.tables: list[tuple[str, list[list[str]]]] = []
+        self._heading: str | None = None
+        self._last_heading = ""
+        self._cell: list[str] | None = None
+        self._skip = 0
+        self.feed(html)
+        self.text = " ".join(" ".join(self.parts).split())
+
+    def handle_starttag(self, tag, attrs):
+        if tag in ("script", "style"):
+            self._skip += 1
+        elif tag in ("h1", "h2", "h3"):
+            self._heading = ""
+        elif tag == "table":
+            self.tables.append((self._last_heading, []))
+        elif tag == "tr":
+            self.tables[-1][1].append([])
+        elif tag in ("td", "th"):
+            self._cell = []
+
+    def handle_endtag(self, tag):
+        if tag in ("script", "style"):
+            self._skip -= 1
+        elif tag in ("h1", "h2", "h3") and self._heading is not None:
+            self._last_heading, self._heading = " ".join(self._heading.split()), None
+        elif tag in ("td", "th") and self._cell is not None:
+            self.tables[-1][1][-1].append(" ".join("".join(self._cell).split()))
+            self._cell = None
+
+    def handle_data(self, data):
+        if self._skip:
+            return
+        self.parts.append(data)
+        if self._heading is not None:
+            self._heading += data
+        if self._cell is not None:
+            self._cell.append(data)
+
+    def table(self, heading: str) -> list[dict[str, str]]:
+        """The first table under ``heading``, as one dict per row keyed by the header."""
+        rows = next(rows for head, rows in self.tables if head == heading)
+        return [dict(zip(rows[0], r)) for r in rows[1:]]
+
+
+NUMBER = r"\d+(?:\.\d+)?(?:e[-+]?\d+)?"
+"""A number as the page prints it (a sentence's full stop left out)."""
+
+
+@pytest.mark.opm
+def test_a_first_reading_finds_the_best_case_held_back_information_and_calls(campaign,
+                                                                              small_case):
+    """The facts a new reader needs, read from the built page and checked against the stored
+    records and the case's own files (its noise-free truth, its history's sigma)."""
+    from storage import ArtifactStore
+
+    store = ArtifactStore(campaign)
+    rep = store.latest(CAMPAIGN, "report")
+    page = Page(rep.file("report.html").read_text())
+    table = store.latest(CAMPAIGN, "results").read_parquet("evaluations.parquet")
+    best = store.latest(CAMPAIGN, "best").read_json("metrics.json")
+    case = store.latest(CAMPAIGN, "case")
+    end = case.read_json("case.json")["fit_history_end_days"]
+
+    # the best case: its E, which call of how many
+    m = re.search(rf"({NUMBER}) best misfit E \(call (\d+) of (\d+)\)", page.text)
+    assert float(m[1]) == pytest.approx(best["E"], rel=1e-5)
+    assert (int(m[2]), int(m[3])) == (best["index"] + 1, len(table))
+    # the held-back history: its E and its tables
+    m = re.search(rf"Held-back history \(after day ({NUMBER})\): E = ({NUMBER})", page.text)
+    assert float(m[1]) == end and float(m[2]) == pytest.approx(best["E_heldout"], rel=1e-5)
+    held = {r["category"]: r for r in page.table("Held-back history: categories")}
+    for cat, score in best["heldout_metrics"]["categories"].items():
+        if score["n"]:
+            assert int(held[cat]["N"]) == score["n"]
+
+    # which responses carry information, from the case's files: the oil rate given without
+    # sigma is the rate control; a water cut whose noise-free truth stays far within the noise
+    # is noise around zero; one that rises well beyond it carries information
+    observed = case.read_parquet("observed.parquet")
+    oil = observed[observed.quantity == "WOPR"]
+    controls = {w for w, g in oil.groupby("well") if g.sigma.isna().all()}
+    truth = pd.read_csv(small_case.parent / "truth_responses.csv")
+    wct = truth[(truth.quantity == "WWCT") & (truth.days <= end)].groupby("well").value.max()
+    dry = set(wct[wct < PUNQ_NOISE.wct_before / 10].index)
+    wet = set(wct[wct > 5 * PUNQ_NOISE.wct_before].index)
+    assert controls and dry and wet
+    grid = {r["well"]: r for r in page.table("Which responses carry information")}
+    scores = {r["well"]: r for r in page.table("C_match (%) per well and category")}
+    for well in controls:
+        assert grid[well]["oil"] == "rate control"
+        assert scores[well]["oil"].endswith("(rate control)")
+    for well in dry:
+        assert grid[well]["wct"] == grid[well]["water"] == "within its noise of zero"
+        assert scores[well]["wct"].endswith("(within its noise of zero)")
+    for well in wet:
+        assert grid[well]["wct"] == grid[well]["water"] == grid[well]["bhp"] == "yes"
+        assert "(" not in scores[well]["wct"]
+    if controls == set(case.read_json("case.json")["wells"]):  # the macro says it leaves oil out
+        assert "left out: oil (rate control at every well)" in page.text
+        assert re.search(r"macro C_match over [a-z, ]*: the responses that carry information",
+                         page.text) and "macro C_match over oil" not in page.text
+
+    # the calls: valid, penalised, failed, and each physics check in words with its count
+    state = table.status.value_counts()
+    m = re.search(r"(\d+) simulator calls: (\d+) valid, (\d+) penalised, (\d+) failed", page.text)
+    assert tuple(map(int, m.groups())) == (len(table), state.get("COMPLETE", 0),
+                                           state.get("INVALID", 0), state.get("FAIL", 0))
+    checks = {r["physics check"]: int(r["penalised calls"])
+              for r in page.table("Calls: valid, penalised, failed")}
+    broke = table.loc[table.status == "INVALID", "violation_kinds"].fillna("").str.split(",")
+    assert checks == {CHECK_NAMES[k]: int(broke.map(lambda ks, k=k: k.value in ks).sum())
+                      for k in Check}
+    markdown = rep.file("report.md").read_text()
+    doc = json.loads(rep.file("report.json").read_text())
+    assert m[0] in markdown and doc["call_states"] == {
+        "valid": int(m[2]), "penalised": int(m[3]), "failed": int(m[4])}
+    assert not re.search(r"\b(COMPLETE|INVALID)\b|\{'", page.text + markdown)
+
+
+def test_a_response_without_information_is_grey_in_the_heatmap_not_coloured():
+    wells = pd.DataFrame({"well": ["A", "B"], "oil": [100.0, 100.0], "water": [50.1, 50.2]})
+    fig = heatmap_figure(wells, {("A", "oil"): "rate control",
+                                 ("A", "water"): "within its noise of zero"})
+    coloured = fig.axes[0].images[1].get_array()  # the C_match colour scale
+    assert coloured.mask[0, 0] and coloured.mask[0, 1]
+    assert not coloured.mask[1, 1] and coloured[1, 1] == 50.2  # B's water: a real miss, red
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert "100.0\nrate control" in texts and "50.1\nzero \u00b1 noise" in texts
+
+
+def _rows(well: str, quantity: str, values: np.ndarray, sigma: float | np.ndarray,
+          source: str = "given") -> pd.DataFrame:
+    n = len(values)
+    return pd.DataFrame({"well": well, "quantity": quantity, "days": 30.0 * np.arange(1, n + 1),
+                         "observed": values, "sigma": sigma, "sigma_source": source,
+                         "flowing": True, "period": np.where(np.arange(n) < n - 8, "fit",
+                                                             "heldout")})
+
+
+def test_the_rate_control_and_a_dry_wells_water_carry_no_information():
+    """A rate control (oil read as the control, or fixed by the history's control) and noise
+    clipped at zero carry none; a water cut that rises, or that stays 2.5 sigma above zero the
+    whole time, carries information. The macro leaves out a category none of whose wells
+    carries information and says so."""
+    rng = np.random.default_rng(3)
+    n, s = 40, PUNQ_NOISE.wct_before
+    noise = s * ar1_series(rng, n, PUNQ_NOISE.rho)
+    rows = pd.concat([
+        _rows("A", "WOPR", np.full(n, 150.0), 7.5, "rate"),
+        _rows("A", "WWCT", np.clip(noise, 0, 1), s),                    # dry: noise around 0
+        _rows("B", "WWCT", np.clip(np.linspace(0, 0.3, n) + noise, 0, 1), s),   # breakthrough
+        _rows("C", "WWCT", np.clip(2.5 * s + noise, 0, 1), s),          # small, but steady
+        _rows("A", "WBHP", 200 + 3 * noise / s, 3.0)], ignore_index=True)
+    controlled = pd.DataFrame({"well": "B", "quantity": "WOPR", "days": [30.0, 1170.0]})
+    info = information_table(rows, controlled, history_end=1000.0)
+    why = {(r.period, r.well, r.category): r.why for r in info.itertuples()}
+    for period in ("fit", "heldout"):
+        assert why[(period, "A", "oil")] == why[(period, "B", "oil")] == "rate control"
+        assert why[(period, "A", "wct")] == "within its noise of zero"
+        for informative in ("B", "wct"), ("C", "wct"), ("A", "bhp"):
+            assert why[(period, *informative)] == ""
+    assert (~info.informative).sum() == 6  # A's and B's oil, A's water cut, in both periods
+    metrics = {"categories": {"oil": {"n": n, "nmse": 0.0, "r2": 1.0},
+                              "water": {"n": n, "nmse": 0.2, "r2": 0.5},
+                              "bhp": {"n": n, "nmse": 0.01, "r2": 0.9}}}
+    macro = informative_macro(metrics, info.assign(category=info.category.replace(
+        "wct", "water")), "fit")
+    assert macro["includes"] == ["water", "bhp"] and macro["left_out"] == {"oil": "rate control"}
+    assert macro["nmse"] == pytest.approx(0.105) and macro["cmatch"] == pytest.approx(100 / 1.105)
+
+
+def test_calls_and_physics_checks_read_the_same_in_markdown_html_and_json():
+    """Hand-made calls: two valid, two penalised (one breaking two checks), two failed (one not
+    simulated for an impossible porosity: failed, not penalised). Every page says valid,
+    penalised and failed with the same counts, names each check in words with its limit from
+    the case's [physics] and counts the calls each penalised; the terminal uses the same words."""
+    table = pd.DataFrame({
+        "index": range(6), "status": ["COMPLETE", "INVALID", "INVALID", "FAIL", "FAIL",
+                                      "COMPLETE"],
+        "E": [0.02, 0.015, 0.03, np.nan, np.nan, 0.01],
+        "violation_kinds": ["", "poro_perm_trend", "poro_perm_trend,pore_volume", "",
+                            "porosity_max", ""],
+        "failure": [None, None, None, "no_convergence", "not_runnable", None],
+        "p_a": [0.5, 0.6, 0.7, 0.8, 0.9, 0.4], "sim_time_s": 1.0, "wall_time_s": 1.0})
+    table["best_E_so_far"] = table.E.where(table.status == "COMPLETE").cummin().ffill()
+    physics = {"trend_sd": 2.5, "pore_volume_change_max": 0.1}
+    case_doc = {"name": "x", "source": "x.toml", "physics": physics,
+                "parameters": [{"name": "a", "low": 0.0, "high": 1.0}]}
+    best = {"index": 5, "E": 0.01, "params": {"a": 0.4},
+            "metrics": {"macro": {"nmse": 0.1, "r2": 0.5, "cmatch": 90.9}, "categories": {},
+                        "wells": {}, "excluded": {}}}
+    markdown, doc = build_report("c", case_doc, table, best, None)
+    html, _ = render(ReportInputs("c", case_doc, "cmaes", table, best, None, None, None, None,
+                                  None))
+    page = Page(html).text
+    for text in (markdown, page):
+        assert "6 simulator calls: 2 valid, 2 penalised, 2 failed" in text
+        assert "no convergence 1" in text and "not runnable 1" in text
+        assert not re.search(r"\b(COMPLETE|INVALID|FAIL)\b|\{'|hmcore\.", text)
+    settings = PhysicsSettings.model_validate(physics)
+    penalised = {"poro_perm_trend": 2, "pore_volume": 1}
+    for kind in Check:
+        row = f"| {CHECK_NAMES[kind]} | {check_sentence(kind.value, settings)} | " \
+              f"{penalised.get(kind.value, 0)} |"
+        assert row in markdown
+        assert f"{CHECK_NAMES[kind]} {check_sentence(kind.value, settings)} " \
+               f"{penalised.get(kind.value, 0)}" in page
+    assert "2.5 standard deviations" in page and "at most 10 %" in page  # the case's limits
+    assert doc["call_states"] == {"valid": 2, "penalised": 2, "failed": 2}
+    assert {c["name"]: c["penalised_calls"] for c in doc["physics_checks"]} == {
+        CHECK_NAMES[k]: penalised.get(k.value, 0) for k in Check}
+    assert dict(STATUS_WORDS) == {state: word for state, word, _ in STATES}

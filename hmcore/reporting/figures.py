@@ -16,6 +16,8 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from hmcore.scoring.information import NoInformation
+
 # response quantity -> (title, observed response category in ObservationSet rows)
 PANELS = (("WOPR", "oil rate"), ("WWPR", "water rate"), ("WGPR", "gas rate"),
           ("WBHP", "bottom-hole pressure"), ("WGOR", "gas-oil ratio"), ("WWCT", "water cut"))
@@ -168,23 +170,51 @@ def best_so_far(table: pd.DataFrame, floor: float | None, centre: float | None) 
     return png(fig)
 
 
-def cmatch_heatmap(wells: pd.DataFrame) -> bytes:
-    """``wells``: :func:`hmcore.scoring.metrics.well_table` (well x response C_match, %)."""
+def cmatch_heatmap(wells: pd.DataFrame, marks: dict[tuple[str, str], str] | None = None
+                   ) -> bytes:
+    """:func:`heatmap_figure` as PNG."""
+    return png(heatmap_figure(wells, marks))
+
+
+def heatmap_figure(wells: pd.DataFrame, marks: dict[tuple[str, str], str] | None = None
+                   ) -> Figure:
+    """``wells``: :func:`hmcore.scoring.metrics.well_table` (well x response C_match, %);
+    ``marks``: (well, response) -> why it carries no information
+    (:func:`hmcore.scoring.information.uninformative`): such a cell is grey, its C_match
+    followed by the reason in short (:data:`SHORT_WHY`), never coloured as a match or a miss
+    (the coloured image, the figure's second, masks it)."""
+    marks = marks or {}
     cats = [c for c in wells.columns if c != "well"]
     data = wells[cats].to_numpy(float)
+    grey = np.array([[(w, c) in marks for c in cats] for w in wells.well], bool).reshape(
+        data.shape)
     fig = Figure(figsize=(1.3 * len(cats) + 2, 0.45 * len(wells) + 1.6))
     ax = fig.subplots()
-    im = ax.imshow(np.ma.masked_invalid(data), cmap="RdYlGn", vmin=50, vmax=100, aspect="auto")
+    ax.imshow(np.where(grey, 1.0, np.nan), cmap="Greys", vmin=0, vmax=6, aspect="auto")
+    im = ax.imshow(np.ma.masked_where(grey | ~np.isfinite(data), data), cmap="RdYlGn",
+                   vmin=50, vmax=100, aspect="auto")
     ax.set_xticks(range(len(cats)), cats)
     ax.set_yticks(range(len(wells)), wells.well)
     for i in range(data.shape[0]):
         for j in range(data.shape[1]):
             v = data[i, j]
-            ax.text(j, i, "n/a" if not math.isfinite(v) else f"{v:.1f}", ha="center",
-                    va="center", fontsize=8)
+            text = "n/a" if not math.isfinite(v) else f"{v:.1f}"
+            why = marks.get((wells.well.iloc[i], cats[j]))
+            if why:
+                text += "\n" + SHORT_WHY.get(why, why)
+            ax.text(j, i, text, ha="center", va="center", fontsize=8 if not why else 7,
+                    color="#555555" if why else "black")
     fig.colorbar(im, ax=ax, label="C_match (%) = 100 / (1 + NMSE)")
-    ax.set_title("Best case: C_match per well and response", fontsize=10)
-    return png(fig)
+    ax.set_title("Best case: C_match per well and response"
+                 + ("\n(grey: carries no information, not scored)" if marks else ""),
+                 fontsize=10)
+    return fig
+
+
+SHORT_WHY = {NoInformation.RATE_CONTROL.value: "rate control",
+             NoInformation.NEAR_ZERO.value: "zero \u00b1 noise",
+             NoInformation.NOISE_FLOOR.value: "at noise floor"}
+"""A reason a response carries no information, short enough for a heatmap cell."""
 
 
 def parameter_traces(table: pd.DataFrame, bounds: dict[str, tuple[float, float]],

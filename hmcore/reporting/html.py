@@ -17,12 +17,26 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from jinja2 import Environment, FileSystemLoader, select_autoescape
+from markdown_it import MarkdownIt
 from markupsafe import Markup
 
 from hmcore.ordering import natural_key
 from hmcore.reporting import figures as figs
-from hmcore.reporting.paper_tables import paper_tables
+from hmcore.reporting.calls import Calls, calls_markdown, chart_counts, count_calls
+from hmcore.reporting.report import (
+    Choice,
+    choice_markdown,
+    convergence_markdown,
+    has_heldout,
+    heldout_markdown,
+    information_markdown,
+    marked_tables,
+    truth_distance,
+    well_names,
+)
+from hmcore.scoring.information import INFO_COLUMNS, informative_macro, uninformative
 from hmcore.scoring.metrics import well_table
+from hmcore.scoring.noise_table import noise_markdown
 
 TEMPLATES = Path(__file__).parent / "templates"
 FAN = [("FOPT", "field cumulative oil"), ("FWPT", "field cumulative water"),
@@ -48,6 +62,14 @@ class ReportInputs:
     diagnosis_markdown: str | None = None
     diagnosis_figures: dict = field(default_factory=dict)  # name -> PNG bytes
     code: str = ""
+    choice: Choice | None = None        # what chose the best call (records.json)
+    noise: pd.DataFrame | None = None   # the noise the fit assumed (noise.parquet)
+    information: pd.DataFrame | None = None  # hmcore.scoring.information.information_table
+
+    @property
+    def calls(self) -> Calls:
+        """The calls as valid, penalised, failed, by physics check and failure reason."""
+        return count_calls(self.table, self.case_doc.get("physics"))
 
 
 def expected_figures(inputs: ReportInputs) -> list[str]:
@@ -70,11 +92,11 @@ def render(inputs: ReportInputs) -> tuple[str, dict[str, bytes]]:
 
     names = list(pngs)
     t = inputs.table
-    counts = t.status.value_counts().to_dict() if len(t) else {}
+    calls = inputs.calls
     html = template.render(
         figure=figure, campaign=inputs.campaign, case_name=inputs.case_doc["name"],
         case_source=inputs.case_doc.get("source", ""), agent=inputs.agent, calls=len(t),
-        status_text=", ".join(f"{v} {k.lower()}" for k, v in sorted(counts.items())),
+        status_text=calls.text,
         built=dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         code=inputs.code, best=_best_card(inputs), references=_reference_cards(inputs),
         summary_figures=[n for n in names if n.startswith("cmatch")],
@@ -82,10 +104,44 @@ def render(inputs: ReportInputs) -> tuple[str, dict[str, bytes]]:
         convergence_figures=[n for n in names if n.startswith(("best_so_far", "failures"))],
         parameter_figures=[n for n in names if n.startswith("parameter")],
         forecast_figures=[n for n in names if n.startswith("forecast")],
-        failure_counts=_failure_counts(t), best_params=_best_params(inputs),
+        failure_counts=chart_counts(calls), best_params=_best_params(inputs),
         truth=inputs.truth, floor_label=_floor_label(inputs), forecast=_forecast(inputs),
-        paper_tables=_paper_tables(inputs), diagnosis=_diagnosis(inputs, names))
+        paper_tables=_paper_tables(inputs), diagnosis=_diagnosis(inputs, names),
+        sections=_sections(inputs, calls))
     return html, pngs
+
+
+def markdown_html(text: str) -> str:
+    """Markdown (CommonMark with tables, no raw HTML) as HTML."""
+    return MarkdownIt("commonmark", {"html": False}).enable("table").render(text)
+
+
+def _sections(inputs: ReportInputs, calls: Calls) -> dict[str, str]:
+    """The report's sections written once as Markdown (:mod:`hmcore.reporting.report`), as
+    HTML: ``choice``, ``information``, ``heldout``, ``calls``, ``convergence``, ``noise`` (a
+    section the inputs do not allow is absent)."""
+    parts: dict[str, list[str]] = {"calls": calls_markdown(calls)}
+    best, info = inputs.best, _information(inputs)
+    if best is not None:
+        parts["choice"] = choice_markdown(best, inputs.choice or Choice(best.get(
+            "objective", "E")))
+        if best.get("metrics", {}).get("categories"):
+            parts["information"] = information_markdown(best["metrics"], info, "fit",
+                                                        well_names(best["metrics"]))
+    if has_heldout(best):
+        parts["heldout"] = heldout_markdown(best, inputs.case_doc, info)
+    if len(inputs.table) and "best_E_so_far" in inputs.table:
+        parts["convergence"] = convergence_markdown(inputs.table, inputs.choice or Choice())
+    if inputs.noise is not None and not inputs.noise.empty:
+        parts["noise"] = [noise_markdown(inputs.noise)]
+    return {k: markdown_html("\n".join(v) + "\n") for k, v in parts.items()}
+
+
+def _information(inputs: ReportInputs) -> pd.DataFrame:
+    """The inputs' information table (empty: every scored response counts)."""
+    if inputs.information is not None:
+        return inputs.information
+    return pd.DataFrame(columns=INFO_COLUMNS)
 
 
 CAPTIONS = {"well": "observed against simulated, six responses",
@@ -108,7 +164,8 @@ def _figures(inputs: ReportInputs, draw: bool) -> dict[str, bytes]:
     bounds = {p["name"]: (float(p["low"]), float(p["high"]))
               for p in inputs.case_doc["parameters"]}
     if best is not None and best.get("metrics", {}).get("wells"):
-        add("cmatch_heatmap", lambda: figs.cmatch_heatmap(well_table(best["metrics"])))
+        add("cmatch_heatmap", lambda: figs.cmatch_heatmap(
+            well_table(best["metrics"]), uninformative(_information(inputs), "fit")))
     curves = inputs.curves
     if curves is not None and len(curves):
         for well in _wells(inputs):
@@ -120,7 +177,7 @@ def _figures(inputs: ReportInputs, draw: bool) -> dict[str, bytes]:
     if len(t):
         add("best_so_far", lambda: figs.best_so_far(t, inputs.references.get("floor"),
                                                      inputs.references.get("centre")))
-        kinds = _failure_counts(t)
+        kinds = chart_counts(inputs.calls)
         if kinds:
             add("failures", lambda: figs.failures(kinds))
         add("parameter_traces", lambda: figs.parameter_traces(
@@ -183,13 +240,22 @@ def volume_text(v) -> str:
 
 
 def _best_card(inputs: ReportInputs) -> dict | None:
+    """The summary cards of the best case: E, likelihood, the macro scores over the responses
+    that carry information (and which) and the paper's macro C_match."""
     b = inputs.best
     if b is None:
         return None
-    macro = b.get("metrics", {}).get("macro", {})
+    metrics = b.get("metrics", {})
+    macro = metrics.get("macro", {})
+    mine = informative_macro(metrics, _information(inputs), "fit") if metrics.get(
+        "categories") else {**macro, "includes": []}
     lk = b.get("likelihood")
-    return {"E": f"{b['E']:.6g}", "call": b["index"] + 1, "nmse": _fmt(macro.get("nmse")),
-            "r2": _fmt(macro.get("r2")), "cmatch": _fmt(macro.get("cmatch"), 2),
+    eh = b.get("E_heldout")
+    return {"E": f"{b['E']:.6g}", "call": b["index"] + 1, "nmse": _fmt(mine.get("nmse")),
+            "r2": _fmt(mine.get("r2")), "cmatch": _fmt(mine.get("cmatch"), 2),
+            "includes": ", ".join(mine["includes"]),
+            "paper_cmatch": _fmt(macro.get("cmatch"), 2),
+            "E_heldout": f"{eh:.6g}" if eh is not None and math.isfinite(eh) else None,
             "likelihood": f"{lk:.6g}" if lk is not None and math.isfinite(lk) else None,
             "chosen": b.get("objective", "E")}
 
@@ -208,31 +274,20 @@ def _reference_cards(inputs: ReportInputs) -> list[dict]:
             if v is not None and math.isfinite(v)]
 
 
-def _failure_counts(t: pd.DataFrame) -> dict[str, int]:
-    kinds: dict[str, int] = {}
-    if not len(t):
-        return kinds
-    column = "failure" if "failure" in t else "reason"
-    for kind in t.loc[t.status == "FAIL", column].fillna("unknown"):
-        key = f"failed: {str(kind).split(':')[0] or 'unknown'}"
-        kinds[key] = kinds.get(key, 0) + 1
-    if "violation_kinds" in t:
-        for cell in t.loc[t.status == "INVALID", "violation_kinds"].fillna(""):
-            for kind in sorted(set(filter(None, str(cell).split(",")))) or ["unspecified"]:
-                key = f"penalised: {kind}"
-                kinds[key] = kinds.get(key, 0) + 1
-    return kinds
-
-
 def _best_params(inputs: ReportInputs) -> list[dict]:
+    """The best case's parameters with their bounds and, against a known truth, the truth,
+    the error and the error as a share of the range."""
     if inputs.best is None:
         return []
+    dist = truth_distance(inputs.case_doc, inputs.best["params"], inputs.truth or {})
     rows = []
     for p in inputs.case_doc["parameters"]:
         name = p["name"]
+        d = dist.get(name, {})
         rows.append({"name": name, "value": _fmt(inputs.best["params"].get(name)),
                      "low": _fmt(p["low"]), "high": _fmt(p["high"]),
-                     "truth": _fmt((inputs.truth or {}).get(name))})
+                     "truth": _fmt((inputs.truth or {}).get(name)), "error": _fmt(d.get("error")),
+                     "error_of_range": _fmt(d.get("error_of_range"), 3)})
     return rows
 
 
@@ -262,20 +317,21 @@ def _forecast(inputs: ReportInputs) -> dict | None:
 
 
 def _paper_tables(inputs: ReportInputs) -> list[dict]:
+    """The paper's three tables of the fitted history, marked where a response carries no
+    information (:func:`hmcore.reporting.report.marked_tables`)."""
     if inputs.best is None or not inputs.best.get("metrics", {}).get("categories"):
         return []
     heads = {"categories": "Match by category", "wells": "C_match (%) per well and category",
              "ratios": "GOR and water cut per well: records used, left out and why"}
+    tables = marked_tables(inputs.best["metrics"], _information(inputs), "fit")
     return [{"title": heads[k], "html": df.to_html(index=False, border=0, na_rep="n/a")}
-            for k, df in paper_tables(inputs.best["metrics"]).items()]
+            for k, df in tables.items()]
 
 
 def _diagnosis(inputs: ReportInputs, names: list[str]) -> dict | None:
     if inputs.diagnosis_markdown is None:
         return None
-    from markdown_it import MarkdownIt
-
     text = "\n".join(line for line in inputs.diagnosis_markdown.splitlines()
                      if not line.startswith("![")) + "\n"  # figures are embedded below
-    html = MarkdownIt("commonmark", {"html": False}).enable("table").render(text)
-    return {"html": html, "figures": [n for n in names if n.startswith("diagnosis__")]}
+    return {"html": markdown_html(text),
+            "figures": [n for n in names if n.startswith("diagnosis__")]}

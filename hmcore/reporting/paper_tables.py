@@ -57,7 +57,7 @@ def markdown(tables: dict[str, pd.DataFrame], title: str = "Match quality") -> s
     parts = [(f"{title}: categories", "categories"),
              (f"{title}: C_match (%) per well and category", "wells"),
              (f"{title}: GOR and water cut per well (records used, left out and why)", "ratios")]
-    return "\n".join(f"### {head}\n\n{_md(tables[key])}\n" for head, key in parts)
+    return "\n".join(f"### {head}\n\n{markdown_table(tables[key])}\n" for head, key in parts)
 
 
 def cell(column: str, v) -> str:
@@ -71,7 +71,8 @@ def cell(column: str, v) -> str:
     return str(v)
 
 
-def _md(df: pd.DataFrame) -> str:
+def markdown_table(df: pd.DataFrame) -> str:
+    """``df`` as a Markdown table, each value as :func:`cell` prints it."""
     head = "| " + " | ".join(map(str, df.columns)) + " |"
     sep = "|" + "|".join("---" for _ in df.columns) + "|"
     rows = ["| " + " | ".join(cell(c, v) for c, v in zip(df.columns, row)) + " |"

@@ -14,8 +14,17 @@ import numpy as np
 import pandas as pd
 
 from hmcore.diagnosis.report import markdown_report
+from hmcore.ordering import natural_key
 from hmcore.reporting import paper_tables
-from hmcore.scoring.metrics import category_table, ratio_table, well_table
+from hmcore.reporting.calls import calls_markdown, count_calls
+from hmcore.scoring.information import (
+    INFO_COLUMNS,
+    information_grid,
+    informative_macro,
+    uninformative,
+)
+from hmcore.scoring.metrics import category_table, macro_categories, ratio_table, well_table
+from hmcore.scoring.noise import Z_BEYOND_NOISE
 from hmcore.scoring.noise_table import noise_markdown
 from storage.jsonable import to_jsonable
 
@@ -26,10 +35,11 @@ def _fmt(v: Any, digits: int = 4) -> str:
     return str(v)
 
 
-def metrics_markdown(metrics: dict, title: str = "Match quality") -> str:
-    """The paper's three tables (see :mod:`hmcore.reporting.paper_tables`)."""
-
-    return paper_tables.markdown(paper_tables.paper_tables(metrics), title)
+def metrics_markdown(metrics: dict, title: str = "Match quality",
+                     info: pd.DataFrame | None = None, period: str = "fit") -> str:
+    """The paper's three tables (see :mod:`hmcore.reporting.paper_tables`), marked where a
+    response of ``period`` carries no information (:func:`marked_tables`)."""
+    return paper_tables.markdown(marked_tables(metrics, info, period), title)
 
 
 def metrics_document(ev) -> dict:
@@ -109,7 +119,8 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
                  truth: dict[str, float] | None,
                  diagnosis: dict | None = None,
                  noise: pd.DataFrame | None = None,
-                 choice: Choice | None = None) -> tuple[str, dict]:
+                 choice: Choice | None = None,
+                 information: pd.DataFrame | None = None) -> tuple[str, dict]:
     """Markdown report and its JSON twin from stored results (no simulator involved).
 
     ``table``: the consolidated evaluations (None: the campaign ran no calibration, e.g. a
@@ -117,7 +128,9 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
     section (its plots are linked by file name, stored beside the report); ``noise``: the
     noise the fit assumed (:func:`hmcore.scoring.noise_table.noise_summary`, stored with the
     campaign's case, or its latest refinement), a section of its own; ``choice``: what chose
-    the best call (default: E, as campaigns did before the objective)."""
+    the best call (default: E, as campaigns did before the objective); ``information``: which
+    responses carry information (:func:`hmcore.scoring.information.information_table`; None:
+    every scored response counts)."""
     choice = choice or Choice()
     if table is None:
         markdown = "\n".join([f"# hmflow campaign `{campaign}`", "",
@@ -125,7 +138,8 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
                                "calibration campaign was run under this name.", ""]) + "\n"
         doc: dict = {"campaign": campaign, "case": case_doc["name"], "calls": 0, "best": None}
     else:
-        markdown, doc = _campaign_report(campaign, case_doc, table, best, truth, choice)
+        info = information if information is not None else pd.DataFrame(columns=INFO_COLUMNS)
+        markdown, doc = _campaign_report(campaign, case_doc, table, best, truth, choice, info)
     if noise is not None and not noise.empty:
         markdown += "\n" + noise_markdown(noise)
         doc["noise"] = to_jsonable(noise.to_dict(orient="records"))
@@ -140,74 +154,165 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
 
 
 def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: dict | None,
-                     truth: dict[str, float] | None, choice: Choice) -> tuple[str, dict]:
+                     truth: dict[str, float] | None, choice: Choice, info: pd.DataFrame
+                     ) -> tuple[str, dict]:
     n = len(table)
-    counts = table["status"].value_counts().to_dict() if n else {}
+    calls = count_calls(table, case_doc.get("physics"))
     lines = [f"# hmflow campaign `{campaign}`", "",
              f"Case **{case_doc['name']}** ({case_doc['source']}); {n} simulator calls: "
-             + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) + ".", ""]
+             f"{calls.text}.", ""]
+    counts = table["status"].value_counts().to_dict() if n else {}
     doc: dict = {"campaign": campaign, "case": case_doc["name"], "calls": n,
-                 "status_counts": counts, "best": None, "objective": choice.objective,
-                 "noise_refined": choice.noise, "references": choice.references}
-    fails = table[table["status"] == "FAIL"]
-    if not fails.empty:
-        reasons = fails["failure"].fillna("unknown").value_counts().to_dict()
-        lines += [f"Failed calls by kind: {reasons}.", ""]
-        doc["failure_reasons"] = reasons
-    kinds: dict[str, int] = {}
-    if "violation_kinds" in table:
-        for cell in table["violation_kinds"].dropna():
-            for kind in set(filter(None, str(cell).split(","))):  # a call counts once per check
-                kinds[kind] = kinds.get(kind, 0) + 1
-    if kinds:
-        lines += [f"Physics checks broken (calls penalised by each; see hmcore.scoring.physics): {kinds}.",
-                  ""]
-        doc["violation_counts"] = kinds
+                 "status_counts": counts, **calls.document(), "best": None,
+                 "objective": choice.objective, "noise_refined": choice.noise,
+                 "references": choice.references}
     if best is None:
-        lines += ["No valid simulation: nothing can be called best."]
+        lines += ["No valid simulation: nothing can be called best.", ""]
+        lines += calls_markdown(calls)
         return "\n".join(lines) + "\n", to_jsonable(doc)
     params = best["params"]
-    key = choice.objective if choice.objective in best else "E"
-    lines += [f"## Best case: call {best['index'] + 1} of {n} ({key} = "
-              f"{_fmt(best[key], 6)})", ""]
-    lines += choice_markdown(best, choice)
-    lines += ["| parameter | value |", "|---|---|"]
-    lines += [f"| {k} | {_fmt(v)} |" for k, v in params.items()]
+    lines += best_markdown(best, n, choice)
     doc["best"] = {"index": best["index"], "E": best["E"], "params": params,
                    "likelihood": best.get("likelihood"), "chosen_by": choice.objective,
-                   "E_heldout": best.get("E_heldout"), "macro": best["metrics"].get("macro")}
+                   "E_heldout": best.get("E_heldout"), "macro": best["metrics"].get("macro"),
+                   "macro_informative": informative_macro(best["metrics"], info, "fit")}
     if truth:
-        bounds = {p["name"]: (p["low"], p["high"]) for p in case_doc["parameters"]}
-        dist = parameter_distance(params, truth, bounds)
+        dist = truth_distance(case_doc, params, truth)
         doc["truth_distance"] = dist
         lines += ["", "### Distance to the known truth", "",
                   "| parameter | found | truth | error | error / range |", "|---|---|---|---|---|"]
         lines += [f"| {k} | {_fmt(d['found'])} | {_fmt(d['truth'])} | {_fmt(d['error'])} | "
                   f"{_fmt(d['error_of_range'], 3)} |" for k, d in dist.items()]
-    lines += ["", metrics_markdown(best["metrics"], "Fitted history")]
-    cat = category_table(best["metrics"])
-    wells = well_table(best["metrics"])
-    doc["category_table"] = to_jsonable(cat.to_dict(orient="records"))
-    doc["well_table"] = to_jsonable(wells.to_dict(orient="records"))
+    wells = well_names(best["metrics"])
+    lines += [""] + information_markdown(best["metrics"], info, "fit", wells)
+    lines += [metrics_markdown(best["metrics"], "Fitted history", info, "fit")]
+    doc["category_table"] = to_jsonable(category_table(best["metrics"]).to_dict(orient="records"))
+    doc["well_table"] = to_jsonable(well_table(best["metrics"]).to_dict(orient="records"))
     doc["ratio_table"] = to_jsonable(ratio_table(best["metrics"]).to_dict(orient="records"))
-    if best.get("heldout_metrics") and best["heldout_metrics"].get("categories"):
-        lines += [f"Held-back history (after day {case_doc.get('history_end_days')}): "
-                  f"E = {_fmt(best.get('E_heldout'), 6)}", "",
-                  metrics_markdown(best["heldout_metrics"], "Held-back history")]
+    doc["information"] = to_jsonable(info.to_dict(orient="records"))
+    if has_heldout(best):
+        lines += heldout_markdown(best, case_doc, info)
         doc["heldout_category_table"] = to_jsonable(
             category_table(best["heldout_metrics"]).to_dict(orient="records"))
+        doc["heldout_macro_informative"] = informative_macro(best["heldout_metrics"], info,
+                                                             "heldout")
+    lines += calls_markdown(calls)
     if n:
-        both = choice.objective != "E" and "best_objective_so_far" in table
-        trace = table[["index", "best_E_so_far"]
-                      + (["best_objective_so_far"] if both else [])].dropna()
-        marks = sorted({max(1, n // 4), max(1, n // 2), max(1, 3 * n // 4), n})
-        lines += ["### Convergence", "", "| calls | best E so far |"
-                  + (f" best {choice.objective} so far (chooses) |" if both else ""),
-                  "|---|---|" + ("---|" if both else "")]
-        for m in marks:
-            sub = trace[trace["index"] < m]
-            cells = [_fmt(sub[c].iloc[-1], 6) if len(sub) else "n/a" for c in trace.columns[1:]]
-            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines += convergence_markdown(table, choice)
         doc["time"] = {"sim_time_s_total": float(table["sim_time_s"].sum()),
                        "wall_time_s_total": float(table["wall_time_s"].sum())}
     return "\n".join(lines) + "\n", to_jsonable(doc)
+
+
+def best_markdown(best: dict, calls: int, choice: Choice) -> list[str]:
+    """The best case's heading, what chose it (:func:`choice_markdown`) and its parameters."""
+    key = choice.objective if choice.objective in best else "E"
+    lines = [f"## Best case: call {best['index'] + 1} of {calls} ({key} = "
+             f"{_fmt(best[key], 6)})", ""]
+    lines += choice_markdown(best, choice)
+    lines += ["| parameter | value |", "|---|---|"]
+    return lines + [f"| {k} | {_fmt(v)} |" for k, v in best["params"].items()]
+
+
+def truth_distance(case_doc: dict, params: dict, truth: dict[str, float]) -> dict:
+    """:func:`parameter_distance` under the case's parameter bounds."""
+    bounds = {p["name"]: (p["low"], p["high"]) for p in case_doc["parameters"]}
+    return parameter_distance(params, truth, bounds)
+
+
+def has_heldout(best: dict | None) -> bool:
+    """The best case was scored on a held-back history."""
+    return bool(best and (best.get("heldout_metrics") or {}).get("categories"))
+
+
+def heldout_markdown(best: dict, case_doc: dict, info: pd.DataFrame) -> list[str]:
+    """The held-back history's section: its E, which responses carry information there, the
+    macro over them and the paper's three tables."""
+    metrics = best["heldout_metrics"]
+    end = case_doc.get("fit_history_end_days", case_doc.get("history_end_days"))
+    lines = ["## Held-back history", "",
+             f"Held-back history (after day {end}): E = {_fmt(best.get('E_heldout'), 6)}. "
+             "These data were measured but not fitted: how the best case does on them is the "
+             "test of its prediction.", ""]
+    lines += information_markdown(metrics, info, "heldout", well_names(metrics), level=3)
+    return lines + [metrics_markdown(metrics, "Held-back history", info, "heldout")]
+
+
+def convergence_markdown(table: pd.DataFrame, choice: Choice) -> list[str]:
+    """Best E (and the choosing objective's best) so far at a quarter, half, three quarters
+    and all of the calls."""
+    n = len(table)
+    both = choice.objective != "E" and "best_objective_so_far" in table
+    trace = table[["index", "best_E_so_far"] + (["best_objective_so_far"] if both else [])
+                  ].dropna()
+    marks = sorted({max(1, n // 4), max(1, n // 2), max(1, 3 * n // 4), n})
+    lines = ["### Convergence", "", "| calls | best E so far |"
+             + (f" best {choice.objective} so far (chooses) |" if both else ""),
+             "|---|---|" + ("---|" if both else "")]
+    for m in marks:
+        sub = trace[trace["index"] < m]
+        cells = [_fmt(sub[c].iloc[-1], 6) if len(sub) else "n/a" for c in trace.columns[1:]]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
+# ---------------------------------------------------------------- which responses carry information
+INFORMATION_NOTE = (
+    "A response carries no information about the model when it is the well's **rate "
+    "control** (the simulator produces that rate by construction: every model scores C_match "
+    "100 on it), when its observed series is **within its noise of zero** (a zero rate fits it "
+    f"within the noise: no value beyond {Z_BEYOND_NOISE:g} sigma of zero; C_match = 100 / (1 + "
+    "NMSE) of noise around zero is about 50 % for any model with the rate about right, the "
+    "truth too) or when the noise estimate flags it **within the noise floor of zero** (see the "
+    "noise section). Such a response is marked in the tables and grey in the heatmap, not "
+    "scored as a match or a miss, and the macro scores below leave out a category none of "
+    "whose wells carries information.")
+
+
+def well_names(metrics: dict) -> list[str]:
+    """The wells a metrics document scores, in natural order."""
+    return sorted(metrics.get("wells") or {}, key=natural_key)
+
+
+def information_markdown(metrics: dict, info: pd.DataFrame, period: str, wells: list[str],
+                         level: int = 2) -> list[str]:
+    """Which responses of ``period`` carry information (a well x category table: 'yes' or why
+    not) and the macro scores over those that do, beside the paper's."""
+    grid = information_grid(info, period, wells)
+    lines = [f"{'#' * level} Which responses carry information"
+             + (" (held-back history)" if period == "heldout" else ""), ""]
+    if level == 2:
+        lines += [INFORMATION_NOTE, ""]
+    if len(grid.columns) > 1:
+        lines += [paper_tables.markdown_table(grid), ""]
+    return lines + [macro_text(metrics, info, period), ""]
+
+
+def macro_text(metrics: dict, info: pd.DataFrame, period: str) -> str:
+    """The macro scores over the responses that carry information, what they include and leave
+    out, and the paper's macro over every primary category."""
+    mine = informative_macro(metrics, info, period)
+    paper = metrics.get("macro") or {}
+    out = ", ".join(f"{c} ({why} at every well)" for c, why in mine["left_out"].items())
+    return (f"Macro over the responses that carry information ({', '.join(mine['includes'])}"
+            + (f"; left out: {out}" if out else "") + f"): NMSE {_fmt(mine['nmse'])}, "
+            f"R\u00b2 {_fmt(mine['r2'])}, C_match {_fmt(mine['cmatch'], 2)} %. The paper's "
+            f"macro over every primary category ({', '.join(macro_categories(metrics))}): "
+            f"C_match {_fmt(paper.get('cmatch'), 2)} %.")
+
+
+def marked_tables(metrics: dict, info: pd.DataFrame | None, period: str
+                  ) -> dict[str, pd.DataFrame]:
+    """The paper's three tables (:func:`hmcore.reporting.paper_tables.paper_tables`), the
+    C_match of a well's response that carries no information followed by why ('100.00 (rate
+    control)')."""
+    tables = paper_tables.paper_tables(metrics)
+    if info is None:
+        return tables
+    marks = uninformative(info, period)
+    wells = tables["wells"].astype(object)
+    for i, row in wells.iterrows():
+        for cat in wells.columns[1:]:
+            why = marks.get((row["well"], cat))
+            wells.at[i, cat] = paper_tables.cell(cat, row[cat]) + (f" ({why})" if why else "")
+    return {**tables, "wells": wells}

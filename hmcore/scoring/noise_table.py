@@ -86,6 +86,20 @@ def noise_summary(obs: ObservationSet) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
+def flagged_series(summary: pd.DataFrame | None, rows: pd.DataFrame) -> set[tuple[str, str]]:
+    """The (quantity, well) pairs a :func:`noise_summary` flags uninformative (its ``wells``:
+    'all', the wells of ``rows`` that have the quantity, or their names), as
+    :attr:`ObservationSet.uninformative` gave them."""
+    if summary is None or summary.empty or "uninformative" not in summary:
+        return set()
+    out = set()
+    for r in summary[summary.uninformative.astype(bool)].itertuples():
+        wells = (set(rows.well[rows.quantity == r.quantity]) if r.wells == "all"
+                 else {w.strip() for w in str(r.wells).split(",")})
+        out |= {(r.quantity, str(w)) for w in wells}
+    return out
+
+
 def format_noise_table(obs: ObservationSet) -> str:
     """The noise the fit will assume, in plain text (one line per :func:`noise_summary` row,
     then what the flags mean)."""

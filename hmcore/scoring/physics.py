@@ -56,6 +56,62 @@ class Check(str, Enum):
     WATER_CUT_RANGE = "water_cut_range"
 
 
+CHECK_NAMES = {
+    Check.PARAMETER_RANGE: "parameter outside its physical range",
+    Check.POROSITY_MAX: "porosity above its maximum",
+    Check.PERMEABILITY_CAP: "permeability above its cap",
+    Check.KV_KH: "vertical to horizontal permeability ratio",
+    Check.PORO_PERM_TREND: "porosity-permeability trend",
+    Check.PORE_VOLUME: "pore volume change",
+    Check.PRESSURE_MIN: "bottom-hole pressure below its minimum",
+    Check.WATER_CUT_RANGE: "water cut outside 0 to 1",
+}
+"""Each check by the name a reservoir engineer reads (the report's; ``Check`` values are the
+stored keys)."""
+
+
+def check_name(kind: str) -> str:
+    """The engineer's name of a stored check key (the key itself when it is not a check)."""
+    try:
+        return CHECK_NAMES[Check(kind)]
+    except ValueError:
+        return str(kind).replace("_", " ")
+
+
+def check_sentence(kind: str, settings) -> str:
+    """One sentence of what check ``kind`` tests and its limit under ``settings`` (a case's
+    ``[physics]``, :class:`hmcore.model.case.PhysicsSettings`)."""
+    s = settings
+    cap = (f"{s.perm_cap_md:g} mD" if s.perm_cap_md is not None
+           else f"{s.perm_cap_ratio:g} times the deck's own largest value")
+    pmin = (f"{s.pressure_min:g} (deck units)" if s.pressure_min is not None
+            else "one atmosphere")
+    sentences = {
+        Check.PARAMETER_RANGE: "Multipliers stay above 0 and skins above "
+                               f"{SKIN_MIN:g} (a more negative skin makes the connection factor "
+                               "of an unstimulated well meaningless).",
+        Check.POROSITY_MAX: f"No cell's porosity after the multipliers exceeds {s.poro_max:g}.",
+        Check.PERMEABILITY_CAP: f"No cell's permeability (x, y or z) exceeds {cap}.",
+        Check.KV_KH: f"kv/kh = PERMZ / sqrt(PERMX PERMY) per cell lies in [{s.kv_kh_min:g}, "
+                     f"{s.kv_kh_max:g}]: the share of cells outside may grow by at most "
+                     f"{100 * s.kv_kh_max_fraction:g} points over the deck's own share.",
+        Check.PORO_PERM_TREND: "Each cell's horizontal permeability stays within "
+                               f"{s.trend_sd:g} standard deviations of the deck's own trend of "
+                               "log-permeability against porosity (at the cell's new porosity): "
+                               "the share of cells beyond may grow by at most "
+                               f"{100 * s.trend_max_fraction:g} points over the deck's own share.",
+        Check.PORE_VOLUME: "The total pore volume changes by at most "
+                           f"{100 * s.pore_volume_change_max:g} % from the deck's.",
+        Check.PRESSURE_MIN: "No open well's simulated bottom-hole pressure falls below "
+                            f"{pmin}.",
+        Check.WATER_CUT_RANGE: "Every simulated water cut lies between 0 and 1.",
+    }
+    try:
+        return sentences[Check(kind)]
+    except ValueError:
+        return "A check this version of hmflow does not know."
+
+
 @dataclass(frozen=True)
 class Violation:
     kind: Check
