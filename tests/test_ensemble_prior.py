@@ -120,7 +120,7 @@ def test_a_failed_member_is_left_out_and_the_update_still_made():
     X = rng.normal(0.0, 1.0, (10, 30)).astype(np.float32)
     G = rng.normal(0.0, 0.3, (12, 30))
     data = smoother_data(["P1"] * 12, {"P1": np.array([0.0, 0.0])})
-    spec = EnsembleSpec(size=10, weights=(1.0,), min_realizations=5)
+    spec = EnsembleSpec(size=10, weights=(1.0,), min_realizations=5, localisation="none")
     result = update(X, linear_records(X, G, {3: "crash"}), data, 0, spec)
     ok = [m for m in range(10) if m != 3]
     assert np.isnan(result.ensemble[3]).all() and result.left_out == (3,)

@@ -118,7 +118,7 @@ def test_fewer_members_than_min_realizations_stop_with_one_clear_line():
 def test_a_resumed_iteration_repeats_the_update_exactly():
     m0, c0, g, obs, _, _ = linear_problem()
     x = np.random.default_rng(8).multivariate_normal(m0, c0, size=25).astype(np.float32)
-    settings = SmootherSettings.of(EnsembleSpec(size=25, seed=11))
+    settings = SmootherSettings.of(EnsembleSpec(size=25, seed=11, localisation="none"))
     first = EnsembleSmoother(x, obs, settings)
     first.tell(x.astype(float) @ g.T)
     x1 = first.ensemble

@@ -3,6 +3,7 @@ the rule (with the values) it is told when it says something wrong. No deck need
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from pydantic import ValidationError
 
@@ -120,7 +121,30 @@ def test_the_default_ensemble_is_ert_s():
     assert e.size == 100 and e.weights == (4.0, 2.0, 1.0)
     assert e.alphas == pytest.approx((7.0, 3.5, 1.75))
     assert sum(1 / a for a in e.alphas) == pytest.approx(1.0)
-    assert e.minimum == 50 and e.localisation == "none"
+    assert e.minimum == 50 and e.localisation == "auto"
+
+
+def test_auto_localisation_takes_its_radius_from_the_priors_variograms():
+    """sqrt(major x minor) of the largest range ellipse over the zones; a relation adds none;
+    a files prior alone gives no radius, so no localisation, and says why; a stated
+    localisation is kept as stated."""
+    zone_own = geostat(name="ntg", keyword="NTG", prior={
+        "source": "geostatistical", "seed": 3, "variogram": VARIOGRAM, "zones": [
+            {"layers": [1, 1], "mean": 0.8, "std": 0.1, "variogram": {
+                "ranges": [3000.0, 800.0, 2.0]}},
+            {"layers": [2, 2], "mean": 0.8, "std": 0.1}]})
+    fields = [FieldSpec.model_validate(f) for f in (geostat(), relation(), zone_own)]
+    auto = EnsembleSpec().resolved(fields)
+    expected = max(np.sqrt(VARIOGRAM["ranges"][0] * VARIOGRAM["ranges"][1]), np.sqrt(3000 * 800))
+    assert auto.localisation == "distance" and auto.radius == pytest.approx(expected)
+    assert "auto: distance" in auto.chosen and EnsembleSpec().chosen == ""
+    files = FieldSpec.model_validate({"name": "k", "keyword": "PERMX",
+                                      "prior": {"source": "files", "folder": "x"}})
+    none = EnsembleSpec().resolved([files])
+    assert none.localisation == "none" and none.radius is None and "no field's prior" in none.chosen
+    stated = EnsembleSpec(localisation="adaptive")
+    assert stated.resolved(fields) is stated
+    assert auto.model_dump()["localisation"] == "distance"  # stored settings: the concrete one
 
 
 @pytest.mark.parametrize("data, words", [
@@ -130,7 +154,8 @@ def test_the_default_ensemble_is_ert_s():
                                             "got 11"]),
     ({"localisation": "distance"}, ["needs radius > 0", "radius = None"]),
     ({"localisation": "distance", "radius": -5.0}, ["radius = -5.0"]),
-    ({"radius": 500.0}, ["only for localisation = 'distance'"]),
+    ({"radius": 500.0}, ["only for localisation = 'distance'", "not 'auto'",
+                         "'auto', the default, takes the radius from the prior's variograms"]),
     ({"localisation": "kriging"}, ["'none'", "'adaptive'", "'distance'"]),
     ({"sise": 10}, ["Extra inputs are not permitted"]),
 ])

@@ -94,6 +94,11 @@ class SmootherSettings:
 
     @classmethod
     def of(cls, spec: EnsembleSpec, **numerics) -> SmootherSettings:
+        """The settings of an ``[ensemble]`` section whose localisation is concrete (a case's
+        is: ``localisation = "auto"`` is resolved with its fields when the case loads)."""
+        if spec.localisation == "auto":
+            raise ValueError("localisation 'auto' needs the case's fields to choose: use "
+                             "EnsembleSpec.resolved(fields) first (a loaded case's ensemble is)")
         return cls(alphas=spec.alphas, min_realizations=spec.minimum,
                    localisation=spec.localisation, radius=spec.radius, seed=spec.seed,
                    **numerics)

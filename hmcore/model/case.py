@@ -420,7 +420,7 @@ def load_case_file(case: str | Path) -> Case:
                 ParameterSpace(parameters=tuple(params)), info, cfg.case.time_tolerance_days,
                 end, cfg.misfit, cfg.simulator, cfg.physics, dict(cfg.noise),
                 tuple(case_fields.resolved(f, partial(_relative_to, path)) for _, f in fields),
-                cfg.ensemble)
+                cfg.ensemble.resolved([f for _, f in fields]))
 
 
 def _before_first(path: Path, end: float, first: float) -> Problem:

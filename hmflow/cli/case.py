@@ -120,7 +120,8 @@ def field_lines(fields, ensemble) -> list[str]:
                      f"{copies} {f.description}".rstrip())
         lines += [f"              {line}" for line in _prior_lines(f)]
     e = ensemble
-    localisation = e.localisation + (f" (radius {e.radius:g})" if e.radius is not None else "")
+    localisation = e.localisation + (f" (radius {e.radius:g})" if e.radius is not None else "") \
+        + (f" [{e.chosen}]" if e.chosen else "")
     lines.append(f"  ensemble  {e.size} members, weights {', '.join(f'{w:g}' for w in e.weights)}"
                  f" (inflation {', '.join(f'{a:.3g}' for a in e.alphas)}), at least {e.minimum} "
                  f"must run, localisation {localisation}, seed {e.seed}")
