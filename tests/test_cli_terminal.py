@@ -19,15 +19,15 @@ from rich.console import Console
 
 import hmflow.console as term
 
+LOG_LINE = re.compile(r"\d\d:\d\d:\d\d\.\d{3} \| [A-Z]+\s+\| ")  # a line of Prefect's console log
 INFO_LINE = re.compile(r"\| INFO\s+\|")  # Prefect's console format: "12:00:00.000 | INFO    | ..."
 TELEMETRY = ("Failed to send telemetry", "sens-o-matic", "anonymous usage data")
 
 
-def hmflow(*args: str, cwd: Path, env: dict | None = None, timeout: int = 600
-           ) -> subprocess.CompletedProcess:
-    # wide enough for the summary table's report path to stay on one line, even under a
-    # pytest-xdist worker's longer temporary folder
-    env = {**(os.environ if env is None else env), "COLUMNS": "220"}
+def hmflow(*args: str, cwd: Path, env: dict | None = None, timeout: int = 600,
+           columns: int = 220) -> subprocess.CompletedProcess:
+    """`hmflow ARGS` writing to pipes, ``columns`` wide."""
+    env = {**(os.environ if env is None else env), "COLUMNS": str(columns)}
     return subprocess.run([sys.executable, "-m", "hmflow.cli", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout, check=False)
 
@@ -44,13 +44,23 @@ def clean_env() -> dict:
 def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_path, small_case,
                                                                         prefect_api):
     """What the terminal shows of `hmflow run` with its own temporary Prefect server (the
-    small synthetic case, conftest.small_case: the printing is tested, not the case); resumed
-    with --verbose on a configured server (the session's, conftest.prefect_api)."""
+    small synthetic case, conftest.small_case: the printing is tested, not the case), at 80
+    columns in a pipe; `hmflow report` of it, and the run resumed with --verbose, on a
+    configured server (the session's, conftest.prefect_api)."""
+    store = tmp_path / "a-store-with-a-long-name-so-that-its-report-path-is-longer-than-80-columns"
     common = ("run", "--case", str(small_case), "--agent", "random", "--seed", "3",
-              "--workers", "1", "--storage", str(tmp_path / "store"))
-    quiet = hmflow(*common, "--budget", "2", cwd=tmp_path, env=clean_env())
+              "--workers", "1", "--storage", str(store))
+    quiet = hmflow(*common, "--budget", "2", cwd=tmp_path, env=clean_env(), columns=80)
     text = quiet.stdout + quiet.stderr
     assert quiet.returncode == 0, text
+    # the campaign's name when the run starts and ends, paths and commands never broken
+    lines = quiet.stdout.splitlines()
+    start = lines.index(f"storage: {store}")
+    assert " ".join(" ".join(lines[:start]).split()) == ("campaign synthetic-small-random-seed3: case "
+                                       "synthetic-small, agent random, budget 2, workers 1, seed 3")
+    assert lines[-2:] == ["campaign synthetic-small-random-seed3 done; to print its report again:",
+                          f"  hmflow report --campaign synthetic-small-random-seed3 --storage {store}"]
+    assert_80_columns(quiet.stdout, store)
     assert not INFO_LINE.search(text), text           # Prefect's INFO lines stay out
     assert "Traceback" not in text and not any(t in text for t in TELEMETRY), text
     assert "2/2" in quiet.stdout                      # the progress bar reached the budget
@@ -59,7 +69,7 @@ def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_pat
     # the summary table comes last: best E with its call numbered from 1, the paper's three
     # headline numbers, failed / penalised calls and where the report is
     summary = quiet.stdout[quiet.stdout.rindex("Summary"):]
-    doc = json.loads(next((tmp_path / "store").glob("*/report/v0001/report.json")).read_text())
+    doc = json.loads(next(store.glob("*/report/v0001/report.json")).read_text())
     best = doc["best"]
     assert re.search(rf"best E\s+│ {best['E']:.6g} \(call {best['index'] + 1} of 2\)", summary)
     assert not re.search(r"call 0\b", text)
@@ -67,8 +77,17 @@ def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_pat
     assert f"macro R²           │ {best['macro']['r2']:.4f}" in summary
     assert f"C_match            │ {best['macro']['cmatch']:.2f} %" in summary
     assert "failed / penalised │ 0 failed, 1 penalised (of 2 calls)" in summary
-    where = re.search(r"report\s+│ (\S+)", summary).group(1)
+    where = re.search(r"^report: (.+)$", summary, re.MULTILINE).group(1)     # a line of its own
     assert Path(where).is_file() and Path(where).name in ("report.html", "report.md")
+
+    # the same report rebuilt from the store, printed at 80 columns in a pipe
+    rep = hmflow("report", "--storage", str(store), "--campaign", "synthetic-small-random-seed3",
+                 cwd=tmp_path, env={**clean_env(), "PREFECT_API_URL": prefect_api}, columns=80)
+    assert rep.returncode == 0, rep.stdout + rep.stderr
+    assert f"best call {best['index'] + 1} (calls numbered from 1)" in rep.stdout
+    assert_80_columns(rep.stdout, store)
+    where = re.findall(r"^report: (.+)$", rep.stdout, re.MULTILINE)[-1]
+    assert Path(where).is_file() and Path(where).is_relative_to(store)
 
     # --verbose: the same campaign resumed to 3 calls, Prefect's INFO lines shown - printed by
     # the bar's own console, so that no log line is written into the bar
@@ -83,6 +102,20 @@ def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_pat
     assert bar and all(not INFO_LINE.search(line) for line in bar), bar
     assert "3/3" in bar[-1] and re.search(r"\(call [1-3] of 3\)", loud.stdout)
     assert not re.search(r"call 0\b", text)
+
+
+def assert_80_columns(out: str, store: Path) -> None:
+    """Nothing cut (no ellipsis) and no line over 80 columns but those that hold a path under
+    ``store``, which are never broken: a path is on a line of its own and whole. (Prefect's own
+    log lines, a warning of a library, are not hmflow's printing.)"""
+    assert "…" not in out, out
+    lines = [line for line in out.splitlines() if not LOG_LINE.match(line)]
+    long = [line for line in lines if len(line) > 80]
+    assert long and all(str(store) in line for line in long), long
+    assert all(line.endswith(str(store)) or re.search(rf"{re.escape(str(store))}/\S+$", line)
+               for line in lines if str(store) in line), out
+    # a path broken anywhere leaves the start of the store's name without the whole path
+    assert out.count(store.name[:12]) == out.count(str(store)), out
 
 
 def test_prefect_reads_the_quiet_defaults_and_a_users_own_values_win(tmp_path):

@@ -3,10 +3,12 @@ report rebuilt from storage, and the paper's tables of a stored call."""
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.markup import escape
 
 from flows.inputs import scalar_problems
 from hmcore.calibration.registry import DEFAULT_AGENT, default_campaign_name
@@ -22,12 +24,21 @@ from hmflow.cli.common import (
     fail,
     folder,
     load_case,
+    no_campaign,
     print_forecast,
     print_tables,
     refuse,
 )
 from hmflow.cli.flowrun import check_inputs, fit_workers, flow_refused, progress_columns, start_api
 from hmflow.console import Watch, campaign_poll, prefect_environment, status_text, summary_table
+
+CAMPAIGN_HELP = ("Campaign name; the same name resumes. Default: CASE-AGENT-vN-seedS (the "
+                 "case's name, --agent, the method's version N, left out for version 1, and "
+                 "--seed); with the defaults: "
+                 f"{default_campaign_name('synthetic', DEFAULT_AGENT, 0)}. Printed when the "
+                 "run starts and ends")
+"""``run --help`` on the campaign name, with the name of the default run made by the rule
+itself (:func:`~hmcore.calibration.registry.default_campaign_name`)."""
 
 
 @app.command()
@@ -41,8 +52,8 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         workers: int = typer.Option(2, "--workers", min=1, help="Simulations at once"),
         seed: int = typer.Option(0, "--seed"),
         storage: Path = typer.Option(DEFAULT_STORAGE, "--storage", help="Artifact store"),
-        campaign: Optional[str] = typer.Option(None, "--campaign", callback=checked_campaign, help="Campaign name "
-                                               "(default CASE-AGENT-seedS; the same name resumes)"),
+        campaign: Optional[str] = typer.Option(None, "--campaign", callback=checked_campaign,
+                                               help=CAMPAIGN_HELP),
         task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
         dask_address: Optional[str] = typer.Option(None, "--dask-address", help=DASK_HELP),
         fork: Optional[str] = typer.Option(None, "--fork", callback=checked_campaign,
@@ -77,10 +88,12 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     except ValueError as exc:
         fail(str(exc))
     console.print(f"campaign [bold]{name}[/]: case {c.name}, agent {agent}, budget {budget}, "
-                  f"workers {workers}, seed {seed}, storage {storage}"
-                  + (f", forked from {forked_from}" if forked_from else ""))
+                  f"workers {workers}, seed {seed}"
+                  + (f", forked from {forked_from}" if forked_from else ""), highlight=False)
+    console.print(f"storage: {escape(str(storage))}", soft_wrap=True, highlight=False)  # never broken
+    journal = EvaluationJournal(ArtifactStore(storage), name)
     try:
-        done = len(EvaluationJournal(ArtifactStore(storage), name).indices())
+        done = len(journal.indices())
         if done:  # (Prefect's INFO line saying so is not shown without --verbose)
             console.print(f"resuming campaign {name}: {done} calls already journaled")
         with Watch(console, campaign_poll(storage, name, budget), progress_columns("run"),
@@ -89,9 +102,20 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                                    seed=seed, storage=str(storage), campaign=name,
                                    task_runner=task_runner, dask_address=dask_address,
                                    **({"forked_from": forked_from} if forked_from else {}))
+    except KeyboardInterrupt:
+        console.print(f"campaign [bold]{name}[/] stopped with {len(journal.indices())} calls "
+                      "journaled; the same command resumes it")
+        raise
     except (ValueError, flow_refused()) as exc:
         fail(str(exc))
     print_report(storage, result["campaign"], result)
+    console.print(f"campaign [bold]{result['campaign']}[/] done; to print its report again:",
+                  highlight=False)
+    again = ["hmflow", "report", "--campaign", result["campaign"]]
+    if storage != DEFAULT_STORAGE.resolve():
+        again += ["--storage", str(storage)]
+    console.print("  " + escape(shlex.join(again)), soft_wrap=True,
+                  highlight=False)  # a command to copy: never broken
 
 
 def check_fork(fork: str, campaign: Optional[str], storage: Path) -> None:
@@ -107,8 +131,10 @@ def check_fork(fork: str, campaign: Optional[str], storage: Path) -> None:
 
 def print_report(storage: Path, campaign: str, result: dict | None = None) -> None:
     """Print a stored report: best parameters, distance to truth, the paper's tables, then one
-    summary table (best E, headline numbers, failed / penalised calls, where the report is).
-    ``result``: the flow's result, whose ``report_html`` (else ``report_path``) is shown."""
+    summary table (best E, headline numbers, failed / penalised calls) and where the report
+    is, on a line of its own that is never wrapped (a path broken at the terminal's width
+    cannot be copied). ``result``: the flow's result, whose ``report_html`` (else
+    ``report_path``) is shown."""
     # storage imports pandas: keeps `hmflow --help` fast
     from storage import ArtifactStore
 
@@ -144,7 +170,8 @@ def print_report(storage: Path, campaign: str, result: dict | None = None) -> No
     result = result or {}
     where = (result.get("report_html") or result.get("report_path")
              or rep.file("report.html" if "report.html" in rep.files else "report.md"))
-    console.print(summary_table(doc, where))
+    console.print(summary_table(doc, None))
+    console.print(f"report: {escape(str(where))}", soft_wrap=True, highlight=False)  # never broken
 
 
 @app.command()
@@ -154,8 +181,7 @@ def report(storage: Path = typer.Option(DEFAULT_STORAGE, "--storage"),
     """Rebuild a campaign's report from stored artifacts (zero simulator calls)."""
     prefect_environment(verbose)
     if not (storage / campaign).is_dir():
-        fail(f"no campaign '{campaign}' in {storage}; known: "
-             f"{sorted(p.name for p in storage.iterdir()) if storage.is_dir() else []}")
+        fail(no_campaign(campaign, storage), soft_wrap=True)
     start_api()
     # Prefect: only after start_api (it reads its settings on import)
     from flows.report import report_flow
@@ -185,10 +211,12 @@ def tables(storage: Path = typer.Option(DEFAULT_STORAGE, "--storage"),
     from storage import ArtifactStore, EvaluationJournal
 
     store = ArtifactStore(storage)
-    case = store.latest(campaign, "case") if (storage / campaign).is_dir() else None
+    if not (storage / campaign).is_dir():
+        fail(no_campaign(campaign, storage), soft_wrap=True)
+    case = store.latest(campaign, "case")
     if case is None:
-        fail(f"no campaign '{campaign}' with a stored case in {storage}; known: "
-             f"{store.campaigns() if storage.is_dir() else []}")
+        fail(f"campaign '{campaign}' in {storage} has no stored case to rescore its runs "
+             "against", soft_wrap=True)
     if call is None:
         best = store.latest(campaign, "best")
         if best is None:

@@ -4,11 +4,13 @@ score one simulation. hmcore alone, no Prefect."""
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.markup import escape
 
 from hmcore.errors import CaseError
 from hmcore.scoring.noise_table import case_noise_text
@@ -26,6 +28,7 @@ from hmflow.cli.common import (
     print_problems,
     print_tables,
 )
+from hmflow.console import STATUS_WORDS
 
 
 @app.command()
@@ -194,14 +197,49 @@ def evaluate(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     (out / "metrics.json").write_text(json.dumps(metrics_document(ev), indent=2))
     if ev.responses is not None:
         ev.responses.to_parquet(out / "responses.parquet", index=False)
-    console.print(f"status [bold]{ev.status.value}[/]  E = {num(ev.E, 6)}  penalty = {num(ev.penalty)}  "
-                  f"reward = {num(ev.reward, 6)}  coverage = {num(ev.coverage, 3)}  "
-                  f"simulator {ev.sim_time_s:.1f} s")
+    console.print(evaluation_text(ev, likelihood(c, ev), c.misfit.objective), highlight=False)
     if ev.reason:
-        console.print(f"reason: {ev.reason}")
+        console.print(f"reason: {escape(ev.reason)}", highlight=False)
     if ev.metrics:
         print_tables(ev.metrics)
     written = [out / "metrics.json"] + ([out / "responses.parquet"] if ev.responses is not None else [])
-    console.print("wrote " + " and ".join(map(str, written)))
+    for path in written:  # a path on a line of its own, never wrapped
+        console.print(f"wrote {path}", soft_wrap=True, highlight=False)
     if ev.status.value == "FAIL":
         raise typer.Exit(1)
+
+
+def evaluation_text(ev, lk: float | None, objective: str) -> str:
+    """One call in the report's words: valid, penalised or failed; E, the likelihood
+    (chi2/n) and which of the two is the case's objective; the held-back E, the physics
+    penalty, the history's records matched in time and the simulator's time."""
+    state = dict(STATUS_WORDS).get(ev.status.value, ev.status.value)
+    if ev.status.value == "FAIL":
+        return f"[bold]{state}[/]: no E (simulator {ev.sim_time_s:.1f} s)"
+    mark = " (the case's objective)"
+    parts = [f"E = {num(ev.E, 6)}" + (mark if objective == "E" else "")]
+    if lk is not None:
+        parts.append(f"likelihood (chi2/n) = {num(lk, 6)}" + (mark if objective == "likelihood"
+                                                             else ""))
+    if math.isfinite(ev.E_heldout):
+        parts.append(f"held-back E = {num(ev.E_heldout, 6)}")
+    if ev.penalty > 0:
+        parts.append(f"physics penalty {num(ev.penalty)}")
+    parts.append(f"{100 * ev.coverage:.1f} % of the history's records matched in time")
+    return f"[bold]{state}[/]: " + ", ".join(parts) + f"; simulator {ev.sim_time_s:.1f} s"
+
+
+def likelihood(case, ev) -> float | None:
+    """The likelihood (chi2/n) of a scored call under the noise of the case's history, as a
+    campaign scores its calls before any refinement of that noise (None for a failed call)."""
+    if ev.responses is None or ev.status.value == "FAIL":
+        return None
+    # the objective and the observation set import pandas: keeps `hmflow --help` fast
+    from hmcore.calibration.objective import Objective
+    from hmcore.scoring.observations import ObservationSet
+
+    obs = ObservationSet.from_case(case)
+    record = {"status": ev.status.value, "E": ev.E,
+              "simulated": obs.simulated(ev.responses).tolist()}
+    value = Objective("likelihood", obs).likelihood(record)
+    return value if math.isfinite(value) else None

@@ -1,6 +1,8 @@
 """The Typer app of the ``hmflow`` command line and what its commands share: the help texts of
-common options, the command start (Prefect's terminal settings, SIGTERM), and turning bad
-input into exit 2 with every problem on stderr (the user's text printed as it is).
+common options, ``--help`` in plain words at any width (:class:`PlainHelp`), the command start
+(Prefect's terminal settings, SIGTERM), turning bad input into exit 2 with every problem on
+stderr (the user's text printed as it is), and printing that reads at 80 columns and in a pipe
+(paths never broken, table columns wrapped instead of cut).
 
 Importing this module changes nothing in the process: Prefect's environment is set when a
 command runs (:func:`_start`), and the modules of hmcore that import pandas or Prefect are
@@ -10,7 +12,9 @@ imported by the commands that use them, so that ``hmflow --help`` starts fast.
 from __future__ import annotations
 
 import difflib
+import inspect
 import math
+import re
 import signal
 from collections.abc import Iterable
 from pathlib import Path
@@ -20,11 +24,61 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
+from typer.core import TyperGroup, TyperOption
 
 from hmcore.errors import CaseError
 from hmflow.console import prefect_environment
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+VALUE_WORDS = {"str": "TEXT", "int": "INTEGER", "float": "NUMBER"}
+"""What ``--help`` shows after an option that takes a value, for typer's ``<str>``,
+``<int range>``, ``<list[float]>``...; other kinds spelled in capitals (``<path>``: PATH)."""
+
+
+class PlainHelp(TyperGroup):
+    """The command group, whose ``--help`` (its own and every command's) reads in plain words
+    at any width: a flag shows no value (typer shows ``<bool>``), an option its value as a
+    word (TEXT, INTEGER, NUMBER, PATH), and a command's text as paragraphs rewrapped to the
+    terminal (typer keeps the docstring's line breaks after the first paragraph, ragged at 80
+    columns)."""
+
+    def get_command(self, ctx, cmd_name):
+        command = super().get_command(ctx, cmd_name)
+        if command is not None:
+            command.help = plain_paragraphs(command.help)
+            for param in command.get_params(ctx):  # (the --help option made on first call)
+                plain_value(param, ctx)
+        return command
+
+    def get_params(self, ctx):
+        params = super().get_params(ctx)
+        for param in params:
+            plain_value(param, ctx)
+        return params
+
+
+def plain_value(param, ctx) -> None:
+    """Set an option's metavar, which ``--help`` shows after it, to a plain word (none for a
+    flag); an option that names its own is left alone."""
+    if not isinstance(param, TyperOption) or param.metavar is not None:
+        return
+    if param.is_flag or param.count:
+        param.metavar = ""
+        return
+    kind = param.display_type(ctx).strip("<>")
+    kind = re.sub(r"^list\[(.*)\]$", r"\1", kind).removesuffix(" range")
+    param.metavar = kind if "|" in kind else VALUE_WORDS.get(kind, kind.upper())
+
+
+def plain_paragraphs(text: str | None) -> str | None:
+    """A docstring as paragraphs of one line each (what follows a form feed, typer's end of
+    the help, left out), for the terminal to wrap at its width."""
+    if not text:
+        return text
+    shown = inspect.cleandoc(text).partition("\f")[0]
+    return "\n\n".join(" ".join(p.split()) for p in shown.split("\n\n"))
+
+
+app = typer.Typer(cls=PlainHelp, add_completion=False, no_args_is_help=True,
                   help="Batch history matching of reservoir models with OPM Flow.")
 console = Console()
 err_console = Console(stderr=True)
@@ -121,6 +175,43 @@ def checked_campaign(value: Optional[str]) -> Optional[str]:
         raise typer.BadParameter(str(exc)) from None
 
 
+SHOWN_CAMPAIGNS = 12
+"""At most this many campaign names in the line saying a name is not in the store."""
+
+
+def no_campaign(campaign: str, storage: Path) -> str:
+    """One line: ``campaign`` is not in the store, the stored name nearest to it (a
+    did-you-mean) and the campaigns the store holds."""
+    names = stored_campaigns(storage)
+    if not names:
+        held = "it does not exist" if not storage.is_dir() else "it holds no campaign"
+        return f"no campaign '{campaign}' in {storage}: {held} (give --storage DIR)"
+    near = difflib.get_close_matches(campaign, names, n=1, cutoff=0.6)
+    hint = f" Did you mean '{near[0]}'?" if near else ""
+    more = len(names) - SHOWN_CAMPAIGNS
+    shown = ", ".join(names[:SHOWN_CAMPAIGNS]) + (f" and {more} more" if more > 0 else "")
+    return f"no campaign '{campaign}' in {storage}.{hint} It holds: {shown}"
+
+
+def stored_campaigns(storage: Path) -> list[str]:
+    """The campaigns in a store, sorted: its folders but the reference runs' (the folder a
+    campaign's ``campaign.json`` names as its ``reference``)."""
+    # storage imports pandas: keeps `hmflow --help` fast
+    from storage import ArtifactStore
+
+    if not storage.is_dir():
+        return []
+    store = ArtifactStore(storage)
+    names = store.campaigns()
+    references = set()
+    for name in names:
+        try:
+            references.add((store.settings(name) or {}).get("reference"))
+        except (OSError, ValueError):  # an unreadable campaign.json: still a folder
+            continue
+    return [n for n in names if n not in references]
+
+
 def folder(option_name: str, path: Path) -> Path:
     """A folder option (``--out``, ``--storage``): exit 2 with one line when it names a file
     or cannot be a path, before anything runs."""
@@ -185,22 +276,43 @@ def num(v, digits=4) -> str:
     return f"{v:.{digits}f}"
 
 
+TEXT_COLUMNS = ("category", "ratio", "well", "why")
+"""The tables' columns of words (left-aligned); the others hold numbers."""
+
+
 def print_tables(metrics: dict, title: str = "") -> None:
     """Print the paper's three tables (categories; C_match per well; GOR / water cut per well),
-    in the paper's rounding."""
+    in the paper's rounding. Nothing is cut at any width: words wrap at spaces (the reasons
+    a record is left out, ``shut_in_observed``, are spelled with spaces), a longer word folds
+    onto the next line, and the per-well table leaves out a column with no record at any well,
+    saying so."""
     # the reporting imports pandas: keeps `hmflow --help` fast
-    from hmcore.reporting.paper_tables import cell, paper_tables
+    from hmcore.reporting.paper_tables import paper_tables
 
     heads = {"categories": "match by category", "wells": "C_match (%) per well and category",
              "ratios": "GOR and water cut per well (records used, left out and why)"}
     for key, df in paper_tables(metrics).items():
-        t = Table(title=f"{title} {heads[key]}".strip())
-        for col in df.columns:
-            t.add_column(str(col), justify="left" if col in ("category", "ratio", "well", "why")
-                         else "right")
-        for row in df.itertuples(index=False):
-            t.add_row(*[cell(c, v) for c, v in zip(df.columns, row)])
-        console.print(t)
+        empty = [c for c in df.columns if c not in TEXT_COLUMNS and df[c].isna().all()]
+        if key != "wells":
+            empty = []
+        console.print(text_table(f"{title} {heads[key]}".strip(), df.drop(columns=empty)))
+        if empty:
+            console.print(f"({', '.join(map(str, empty))}: no record at any well, left out)",
+                          highlight=False)
+
+
+def text_table(title: str, df) -> Table:
+    """A table of ``df`` whose cells are never cut (``overflow='fold'``, no ellipsis)."""
+    from hmcore.reporting.paper_tables import cell  # pandas, as above
+
+    t = Table(title=title)
+    for col in df.columns:
+        t.add_column(str(col), justify="left" if col in TEXT_COLUMNS else "right",
+                     overflow="fold")
+    for row in df.itertuples(index=False):
+        t.add_row(*[cell(c, v).replace("_", " ") if c == "why" else cell(c, v)
+                    for c, v in zip(df.columns, row)])
+    return t
 
 
 def print_forecast(storage: Path, campaign: str) -> None:
@@ -215,7 +327,8 @@ def print_forecast(storage: Path, campaign: str) -> None:
     doc = version.read_json("summary.json")
     t = Table(title="Forecast at the schedule's end (P90 low, P10 high)")
     for col in ("quantity", "ensemble", "members", "P90", "P50", "P10"):
-        t.add_column(col, justify="left" if col in ("quantity", "ensemble") else "right")
+        t.add_column(col, justify="left" if col in ("quantity", "ensemble") else "right",
+                     overflow="fold")  # never cut (see text_table)
     for row in table.sort_values(["well", "quantity"], kind="stable").itertuples():
         t.add_row(row.label, row.ensemble, str(row.members),
                   *(f"{getattr(row, p):.5g}" for p in ("P90", "P50", "P10")))
