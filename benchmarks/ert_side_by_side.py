@@ -92,13 +92,17 @@ from hmcore.simulation.responses import read_responses  # noqa: E402
 PYTHON = Path(sys.executable)
 HMFLOW = PYTHON.parent / "hmflow"
 CAMPAIGN = "files-es"
+VARIANTS = {"hmflow": ("hmflow-case", CAMPAIGN),
+            "hmflow-white": ("hmflow-case-white", f"{CAMPAIGN}-white")}
+"""hmflow's runs: as it is, and told ERT's noise model (the same sigma, no time correlation):
+{tool: (case folder in OUT, campaign in OUT/hmflow-store)}."""
 ECLBASE = "SYNTH"
 CONFIG = "synth.ert"
 WORKERS = 2
 
 
 # ============================================================================ prepare
-def prepare(case_path: Path, out: Path) -> dict:
+def prepare(case_path: Path, out: Path, seed: int = 0) -> dict:
     """Write the prior files, hmflow's files-prior case and ERT's configuration (module doc,
     step 1); returns what was written. Idempotent: the prior is drawn from the case's seeds."""
     case = load_case(case_path)
@@ -115,22 +119,45 @@ def prepare(case_path: Path, out: Path) -> dict:
                                                fill=INACTIVE_VALUE)},
                          header=f"{case.name}: member {m} of hmflow's prior of field "
                                 f"{f.name} (seed {prior.seeds.get(f.name)})")
-    hm_case = write_hmflow_case(case_path, out / "hmflow-case")
-    ert_dir = write_ert_config(case, grid, out / "ert", folder)
+    hm_case = write_hmflow_case(case_path, out / VARIANTS["hmflow"][0], seed=seed)
+    write_hmflow_case(case_path, out / VARIANTS["hmflow-white"][0], white=True, seed=seed)
+    ert_dir = write_ert_config(case, grid, out / "ert", folder, seed)
     return {"prior": str(folder), "hmflow_case": str(hm_case), "ert_config": str(ert_dir / CONFIG),
             "members": size, "seeds": dict(prior.seeds)}
 
 
-def write_hmflow_case(case_path: Path, dest: Path) -> Path:
+def write_hmflow_case(case_path: Path, dest: Path, white: bool = False, seed: int = 0) -> Path:
     """A copy of the case file with every field's prior replaced by ``source = "files"`` on
     ``../prior/<field>_*.grdecl``; the deck and observed file absolute; the truth's
-    ``hidden_truth.json`` beside it when the case has one (so the report draws the truth)."""
+    ``hidden_truth.json`` beside it when the case has one (so the report draws the truth).
+
+    ``white``: the case told ERT's noise model, as an ablation: the observed table with a
+    ``sigma`` column (hmflow's own sigma of each fitted row, which it then keeps as given) and
+    ``[noise.Q] correlation_days = 0`` for every quantity (no AR(1) whitening). ``seed``:
+    the ensemble's seed (of the observation perturbations) when not 0."""
     dest.mkdir(parents=True, exist_ok=True)
     doc = tomlkit.parse(case_path.read_text())
     base = case_path.parent
     for key in ("deck", "observed"):
         doc["case"][key] = str((base / str(doc["case"][key])).resolve())
-    doc["case"]["name"] = f"{doc['case']['name']}-files"
+    doc["case"]["name"] = f"{doc['case']['name']}-files" + ("-white" if white else "")
+    if seed:
+        doc["ensemble"]["seed"] = seed
+    if white:
+        obs = ObservationSet.from_case(load_case(case_path))
+        rows = obs.rows.iloc[obs.vector_index("fit")][["well", "quantity", "days", "sigma"]]
+        observed = pd.read_csv(doc["case"]["observed"])
+        merged = observed.merge(rows, on=["well", "quantity", "days"], how="left")
+        if len(merged) != len(observed):
+            raise SystemExit("the observed table has repeated (well, quantity, days) rows")
+        merged.to_csv(dest / "observed.csv", index=False)
+        doc["case"]["observed"] = "observed.csv"
+        noise = tomlkit.table(is_super_table=True)
+        for q in sorted(obs.rows.quantity.unique()):
+            level = tomlkit.table()
+            level["correlation_days"] = 0.0
+            noise[q] = level
+        doc["noise"] = noise
     for p in doc["parameters"]:
         if p.get("kind") == "field":
             prior = tomlkit.inline_table()
@@ -159,8 +186,9 @@ def ert_deck(text: str, includes: list[str], copies: list[tuple[str, str]]) -> s
     return text[:match.start()] + block + text[match.start():]
 
 
-def write_ert_config(case, grid, ert_dir: Path, prior: Path) -> Path:
-    """ERT's configuration in ``ert_dir`` (module doc, step 1)."""
+def write_ert_config(case, grid, ert_dir: Path, prior: Path, seed: int = 0) -> Path:
+    """ERT's configuration in ``ert_dir`` (module doc, step 1); ``seed``: ERT's RANDOM_SEED
+    (123456789, the first run's, for 0)."""
     ert_dir.mkdir(parents=True, exist_ok=True)
     # the grid ERT maps FIELD values on: the deck's own EGRID, from one run of the deck
     base_run = ert_dir / "base-run"
@@ -215,7 +243,7 @@ def write_ert_config(case, grid, ert_dir: Path, prior: Path) -> Path:
         "QUEUE_SYSTEM LOCAL",
         f"MAX_RUNNING {WORKERS}",
         "NUM_CPU 1",
-        "RANDOM_SEED 123456789",
+        f"RANDOM_SEED {seed or 123456789}",
         "RUNPATH simulations/realization-<IENS>/iter-<ITER>",
         "ENSPATH storage",
         f"ECLBASE {ECLBASE}",
@@ -263,10 +291,11 @@ def run_ert(ert: Path, out: Path, weights: tuple[float, ...]) -> dict:
                  out / "ert" / "ert.log", out / "ert" / "run.json", env={"PATH": path})
 
 
-def run_hmflow(out: Path) -> dict:
-    return timed([str(HMFLOW), "ensemble", "--case", str(out / "hmflow-case" / "case.toml"),
-                  "--storage", str(out / "hmflow-store"), "--campaign", CAMPAIGN,
-                  "--workers", str(WORKERS)], out, out / "hmflow.log", out / "hmflow.json")
+def run_hmflow(out: Path, tool: str = "hmflow") -> dict:
+    folder, campaign = VARIANTS[tool]
+    return timed([str(HMFLOW), "ensemble", "--case", str(out / folder / "case.toml"),
+                  "--storage", str(out / "hmflow-store"), "--campaign", campaign,
+                  "--workers", str(WORKERS)], out, out / f"{tool}.log", out / f"{tool}.json")
 
 
 # ============================================================================ compare
@@ -279,14 +308,17 @@ def ert_runs(out: Path, rounds: int, size: int) -> list[dict]:
             path = out / "ert" / "simulations" / f"realization-{m}" / f"iter-{i}"
             smspec = path / f"{ECLBASE}.SMSPEC"
             ok = (path / "OK").is_file() and smspec.is_file()
+            status = path / "status.json"  # ERT's job dispatch: start and end, whole seconds
+            times = json.loads(status.read_text()) if status.is_file() else {}
             rows.append({"tool": "ert", "iteration": i, "member": m, "run_dir": str(path),
                          "ran": path.is_dir(), "ok": ok,
-                         "summary": str(smspec) if ok else None})
+                         "summary": str(smspec) if ok else None,
+                         "start": times.get("start_time"), "end": times.get("end_time")})
     return rows
 
 
-def hmflow_runs(out: Path, rounds: int, size: int) -> list[dict]:
-    """Every journaled member run of the hmflow campaign, by iteration and member."""
+def hmflow_runs(out: Path, rounds: int, size: int, tool: str = "hmflow") -> list[dict]:
+    """Every journaled member run of an hmflow campaign, by iteration and member."""
     from storage import ArtifactStore, EvaluationJournal
     from storage.ensemble import member_journal
 
@@ -294,16 +326,18 @@ def hmflow_runs(out: Path, rounds: int, size: int) -> list[dict]:
     rows = []
     for i in range(rounds):
         records = {r["index"]: r for r in
-                   EvaluationJournal(store, CAMPAIGN, member_journal(i)).rows()}
+                   EvaluationJournal(store, VARIANTS[tool][1], member_journal(i)).rows()}
         for m in range(size):
             r = records.get(m)
             run_dir = Path(r["run_dir"]) if r and r.get("run_dir") else None
             found = sorted(run_dir.glob("*.SMSPEC")) if run_dir and run_dir.is_dir() else []
             ok = r is not None and r.get("status") != "FAIL" and bool(found)
-            rows.append({"tool": "hmflow", "iteration": i, "member": m,
+            start = r["finished_at"] - r["wall_time_s"] if r else None
+            rows.append({"tool": tool, "iteration": i, "member": m,
                          "run_dir": str(run_dir) if run_dir else None, "ran": r is not None,
                          "ok": ok, "summary": str(found[0]) if ok else None,
-                         "failure": (r or {}).get("failure")})
+                         "failure": (r or {}).get("failure"), "start": start,
+                         "end": r["finished_at"] if r else None})
     return rows
 
 
@@ -379,14 +413,23 @@ def ert_report(out: Path) -> dict:
     text = log.read_text(errors="replace") if log.is_file() else ""
     lines = [ln for ln in text.splitlines() if ln.strip()]
     updates = []
-    for path in sorted((out / "ert").rglob("update_log/**/*")):
-        if path.is_file() and path.suffix in (".json", ".txt", ".csv", ""):
-            updates.append(str(path))
-    return {"tail": lines[-25:], "update_logs": updates}
+    for path in sorted((out / "ert" / "update_log").glob("*/Report.csv"),
+                       key=lambda p: p.stat().st_mtime):
+        report = pd.read_csv(path)
+        updates.append({"log": str(path), "observations": int(len(report)),
+                        "status": {str(k): int(v) for k, v in
+                                   report.status.value_counts().items()},
+                        "obs_error_scaling": sorted(set(np.round(
+                            report.obs_error_scaling.astype(float), 4).tolist())),
+                        "missing_realizations": sorted(set(
+                            str(x) for x in report.missing_realizations.dropna()))})
+    monitor = ("Waiting", "Pending", "Running", "Failed", "Finished", "Unknown", "-->", "|")
+    said = [ln.strip() for ln in lines if not ln.strip().startswith(monitor)]
+    return {"tail": said[-25:], "updates": updates}
 
 
-def hmflow_report(out: Path) -> dict:
-    log = out / "hmflow.log"
+def hmflow_report(out: Path, tool: str = "hmflow") -> dict:
+    log = out / f"{tool}.log"
     lines = [ln for ln in (log.read_text(errors="replace") if log.is_file() else "").splitlines()
              if ln.strip()]
     doc = {"tail": lines[-25:]}
@@ -395,7 +438,7 @@ def hmflow_report(out: Path) -> dict:
         from storage.ensemble import FORECAST_STEP
 
         summary = ArtifactStore(out / "hmflow-store").latest(
-            CAMPAIGN, FORECAST_STEP).read_json("summary.json")
+            VARIANTS[tool][1], FORECAST_STEP).read_json("summary.json")
         doc.update({k: summary.get(k) for k in ("headline", "runs", "failed", "iterations",
                                                  "updates")})
     except Exception as exc:  # noqa: BLE001 - the report is best effort
@@ -403,7 +446,7 @@ def hmflow_report(out: Path) -> dict:
     return doc
 
 
-def compare(case_path: Path, out: Path, results: Path, name: str) -> dict:
+def compare(case_path: Path, out: Path, results: Path, name: str, seed: int = 0) -> dict:
     case = load_case(case_path)
     grid = read_grid(case.deck)
     size = case.ensemble.size
@@ -412,7 +455,10 @@ def compare(case_path: Path, out: Path, results: Path, name: str) -> dict:
     obs = ObservationSet.from_case(case)
     truth_doc = json.loads((case_path.parent / "hidden_truth.json").read_text())
     truth = {(t["well"], t["quantity"]): float(t["value"]) for t in truth_doc["forecast"]}
-    runs = ert_runs(out, rounds, size) + hmflow_runs(out, rounds, size)
+    tools = ["ert", *[t for t in VARIANTS if (out / f"{t}.json").is_file()]]
+    runs = ert_runs(out, rounds, size)
+    for tool in tools[1:]:
+        runs += hmflow_runs(out, rounds, size, tool)
     table, curves = score_runs(runs, obs, wells)
 
     prior_files = [{f.name: out / "prior" / f"{f.name}_{m}.grdecl" for f in case.fields}
@@ -422,24 +468,35 @@ def compare(case_path: Path, out: Path, results: Path, name: str) -> dict:
     ert_post = [read_fields({f.name: out / "ert" / "simulations" / f"realization-{m}" /
                              f"iter-{last}" / f"{f.name}.grdecl" for f in case.fields},
                             case, grid) for m in range(size)]
-    hm_dirs = table[(table.tool == "hmflow") & (table.iteration == last)].run_dir
-    hm_post = [read_fields({f.name: Path(d) / "FIELDS.GRDECL" for f in case.fields}, case, grid)
-               if isinstance(d, str) else None for d in hm_dirs]
-    fields = field_errors(case, grid, Path(truth_doc["truth_grdecl"]),
-                          {"prior": prior, "ert posterior": ert_post,
-                           "hmflow posterior": hm_post})
+    ensembles = {"prior": prior, "ert posterior": ert_post}
+    for tool in tools[1:]:
+        dirs = table[(table.tool == tool) & (table.iteration == last)].run_dir
+        ensembles[f"{tool} posterior"] = [
+            read_fields({f.name: Path(d) / "FIELDS.GRDECL" for f in case.fields}, case, grid)
+            if isinstance(d, str) else None for d in dirs]
+    fields = field_errors(case, grid, Path(truth_doc["truth_grdecl"]), ensembles)
 
     timing = {tool: json.loads(p.read_text()) if p.is_file() else None
               for tool, p in (("ert", out / "ert" / "run.json"),
-                              ("hmflow", out / "hmflow.json"))}
+                              *((t, out / f"{t}.json") for t in tools[1:]))}
     summary = []
-    for tool in ("ert", "hmflow"):
+    for tool in tools:
         t = table[table.tool == tool]
+        spans = [float(g.end.max() - g.start.min()) for _, g in t.groupby("iteration")
+                 if g.start.notna().any()]
+        # the runs' own time (ERT: its forward model's, in whole seconds; hmflow: the
+        # simulate task's) per worker, against the round's wall time
+        busy = [float((g.end - g.start).sum()) / WORKERS for _, g in t.groupby("iteration")
+                if g.start.notna().any()]
+        wall = (timing[tool] or {}).get("wall_s")
         entry = {"tool": tool, "simulations": int(t.ran.sum()),
                  "failed": int((t.ran & ~t.ok).sum()),
                  "not_run": int((~t.ran).sum()),
-                 "wall_s": (timing[tool] or {}).get("wall_s"),
-                 "returncode": (timing[tool] or {}).get("returncode")}
+                 "wall_s": wall, "returncode": (timing[tool] or {}).get("returncode"),
+                 "runs_wall_s": [round(x, 1) for x in spans],
+                 "runs_busy_per_worker_s": [round(x, 1) for x in busy],
+                 "runs_overhead": (sum(spans) / sum(busy) - 1.0) if sum(busy) else None,
+                 "outside_runs_s": wall - sum(spans) if wall is not None else None}
         for label, i in (("prior", 0), ("posterior", last)):
             s = t[(t.iteration == i) & t.ok]
             entry[f"{label}_runs_ok"] = int(len(s))
@@ -468,9 +525,11 @@ def compare(case_path: Path, out: Path, results: Path, name: str) -> dict:
     doc = {"name": name, "case": str(case_path), "out": str(out),
            "date": dt.date.today().isoformat(), "machine": machine(),
            "ensemble": case.ensemble.model_dump(mode="json"), "rounds": rounds,
+           "seed": seed, "ert_random_seed": seed or 123456789,
            "observations": {"rows": int(len(obs.vector_index("fit"))), "rho": obs.rho},
            "truth_FOPT": truth.get(("FIELD", "FOPT")), "summary": summary, "fields": fields,
-           "timing": timing, "ert_report": ert_report(out), "hmflow_report": hmflow_report(out),
+           "timing": timing, "ert_report": ert_report(out),
+           **{f"{t}_report": hmflow_report(out, t) for t in tools[1:]},
            "versions": versions()}
     results.mkdir(parents=True, exist_ok=True)
     (results / f"{name}.json").write_text(json.dumps(doc, indent=2, default=_jsonable) + "\n")
@@ -521,7 +580,7 @@ def versions() -> dict:
 
 def markdown(doc: dict) -> str:
     s = {e["tool"]: e for e in doc["summary"]}
-    tools = [t for t in ("ert", "hmflow") if t in s]
+    tools = [t for t in ("ert", *VARIANTS) if t in s]
 
     def cell(tool: str, key: str, fmt: str = "{:.3g}") -> str:
         v = s[tool].get(key)
@@ -555,6 +614,12 @@ def markdown(doc: dict) -> str:
         f"{s[t]['simulations']} ({s[t]['failed']})" for t in tools) + " |")
     lines.append("| wall time of the command (s) | " + " | ".join(
         cell(t, "wall_s", "{:.0f}") for t in tools) + " |")
+    lines.append("| of which the 4 rounds of runs (s) | " + " | ".join(
+        " + ".join(f"{x:.0f}" for x in s[t]["runs_wall_s"]) for t in tools) + " |")
+    lines.append("| the runs' own time per worker (s) | " + " | ".join(
+        " + ".join(f"{x:.0f}" for x in s[t]["runs_busy_per_worker_s"]) for t in tools) + " |")
+    lines.append("| rounds' wall time over the runs' own time | " + " | ".join(
+        cell(t, "runs_overhead", "{:+.0%}") for t in tools) + " |")
     prior = {(r["field"]): r for r in doc["fields"] if r["ensemble"] == "prior"}
     lines.append("")
     lines.append("prior mean RMSE to truth: " + ", ".join(
@@ -568,22 +633,29 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("/work/bench/ert/synthetic-truth-1"))
     ap.add_argument("--ert", type=Path, default=Path("/work/ert26-venv/bin/ert"),
                     help="the ert command of ERT's own environment")
-    ap.add_argument("--stage", choices=["all", "prepare", "ert", "hmflow", "compare"],
-                    default="all")
+    ap.add_argument("--stage", choices=["all", "prepare", "ert", "hmflow", "hmflow-white",
+                                        "compare"], default="all",
+                    help="all: prepare, ert, hmflow, compare (hmflow-white, the ablation, "
+                         "only when asked)")
     ap.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results" / "ert")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="ERT's RANDOM_SEED and hmflow's [ensemble] seed (the observation "
+                         "perturbations); 0: ERT 123456789, hmflow the case's")
     ap.add_argument("--name", default=None, help="results' file name (default: OUT's name)")
     args = ap.parse_args()
     case_path, out = args.case.resolve(), args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     name = args.name or out.name
     if args.stage in ("all", "prepare"):
-        print(json.dumps(prepare(case_path, out), indent=2))
+        print(json.dumps(prepare(case_path, out, args.seed), indent=2))
     if args.stage in ("all", "ert"):
         run_ert(args.ert, out, load_case(case_path).ensemble.weights)
     if args.stage in ("all", "hmflow"):
         run_hmflow(out)
+    if args.stage == "hmflow-white":
+        run_hmflow(out, "hmflow-white")
     if args.stage in ("all", "compare"):
-        compare(case_path, out, args.results.resolve(), name)
+        compare(case_path, out, args.results.resolve(), name, args.seed)
 
 
 if __name__ == "__main__":
