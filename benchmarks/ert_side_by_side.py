@@ -424,7 +424,8 @@ def ert_report(out: Path) -> dict:
                         "missing_realizations": sorted(set(
                             str(x) for x in report.missing_realizations.dropna()))})
     monitor = ("Waiting", "Pending", "Running", "Failed", "Finished", "Unknown", "-->", "|")
-    said = [ln.strip() for ln in lines if not ln.strip().startswith(monitor)]
+    said = [ln.strip() for ln in lines if not ln.strip().startswith(monitor)
+            and "Running time" not in ln]
     return {"tail": said[-25:], "updates": updates}
 
 
@@ -610,6 +611,11 @@ def markdown(doc: dict) -> str:
                  + " | ".join(band(t, "prior") for t in tools) + " |")
     lines.append("| FOPT posterior P90 / P50 / P10 (e6 sm3) | "
                  + " | ".join(band(t, "posterior") for t in tools) + " |")
+    for label in ("prior", "posterior"):
+        lines.append(f"| {label}: truth inside P90-P10 of FOPT and the wells' WOPT | " + " | ".join(
+            f"{sum(bool(v['inside']) for k, v in s[t].items() if k.startswith(label + '_') and isinstance(v, dict))}"
+            f" of {sum(1 for k, v in s[t].items() if k.startswith(label + '_') and isinstance(v, dict))}"
+            for t in tools) + " |")
     lines.append("| simulations (failed) | " + " | ".join(
         f"{s[t]['simulations']} ({s[t]['failed']})" for t in tools) + " |")
     lines.append("| wall time of the command (s) | " + " | ".join(
@@ -627,6 +633,55 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def aggregate(results: Path, names: list[str]) -> str:
+    """One row per run (tool and seed) of the results ``names`` (their JSON files in
+    ``results``) and the mean over seeds per tool, as Markdown; written to
+    ``results/seeds.csv``."""
+    rows = []
+    for name in names:
+        doc = json.loads((results / f"{name}.json").read_text())
+        for e in doc["summary"]:
+            band = e.get("posterior_FOPT") or {}
+            inside = [v["inside"] for k, v in e.items()
+                      if k.startswith("posterior_") and isinstance(v, dict)]
+            rows.append({"tool": e["tool"], "seed": doc.get("seed", 0),
+                         "misfit_diag": e["posterior_misfit_diag_median"],
+                         "misfit_ar1": e["posterior_misfit_ar1_median"],
+                         "fopt_p90": band.get("P90"), "fopt_p50": band.get("P50"),
+                         "fopt_p10": band.get("P10"), "fopt_inside": band.get("inside"),
+                         "fopt_truth_percentile": band.get("truth_percentile"),
+                         "width_over_p50": band.get("width_over_p50"),
+                         "inside_of_5": sum(map(bool, inside)),
+                         "rmse_poro": e.get("posterior_poro_rmse"),
+                         "rmse_log10_permx": e.get("posterior_permx_rmse"),
+                         "spread_poro": e.get("posterior_poro_spread"),
+                         "spread_log10_permx": e.get("posterior_permx_spread"),
+                         "simulations": e["simulations"], "failed": e["failed"],
+                         "wall_s": e["wall_s"], "runs_overhead": e.get("runs_overhead")})
+    table = pd.DataFrame(rows).sort_values(["tool", "seed"])
+    table.to_csv(results / "seeds.csv", index=False)
+    cols = ["misfit_diag", "misfit_ar1", "fopt_p50", "width_over_p50", "inside_of_5",
+            "rmse_poro", "rmse_log10_permx", "spread_poro", "spread_log10_permx", "wall_s",
+            "runs_overhead"]
+    mean = table.groupby("tool")[cols].mean()
+    lines = ["| tool | seed | misfit (diag) | misfit (AR1) | FOPT P90/P50/P10 e6 | truth in "
+             "FOPT band | wells+FOPT inside | RMSE poro | RMSE log10 k | wall s | "
+             "run overhead |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in table.itertuples():
+        lines.append(f"| {r.tool} | {r.seed} | {r.misfit_diag:.2f} | {r.misfit_ar1:.2f} | "
+                     f"{r.fopt_p90 / 1e6:.3f}/{r.fopt_p50 / 1e6:.3f}/{r.fopt_p10 / 1e6:.3f} | "
+                     f"{'yes' if r.fopt_inside else 'NO'} (P{100 - r.fopt_truth_percentile:.0f}) | "
+                     f"{r.inside_of_5} of 5 | {r.rmse_poro:.4f} | {r.rmse_log10_permx:.3f} | "
+                     f"{r.wall_s:.0f} | {r.runs_overhead:+.0%} |")
+    for tool, r in mean.iterrows():
+        n = int((table.tool == tool).sum())
+        lines.append(f"| **{tool}, mean of {n}** | | {r.misfit_diag:.2f} | {r.misfit_ar1:.2f} | "
+                     f"P50 {r.fopt_p50 / 1e6:.3f}, width {r.width_over_p50:.1%} of P50 | | "
+                     f"{r.inside_of_5:.1f} of 5 | {r.rmse_poro:.4f} | {r.rmse_log10_permx:.3f} | "
+                     f"{r.wall_s:.0f} | {r.runs_overhead:+.0%} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--case", type=Path, default=Path("/work/bench/calib/truth-1/case.toml"))
@@ -634,7 +689,7 @@ def main() -> None:
     ap.add_argument("--ert", type=Path, default=Path("/work/ert26-venv/bin/ert"),
                     help="the ert command of ERT's own environment")
     ap.add_argument("--stage", choices=["all", "prepare", "ert", "hmflow", "hmflow-white",
-                                        "compare"], default="all",
+                                        "compare", "aggregate"], default="all",
                     help="all: prepare, ert, hmflow, compare (hmflow-white, the ablation, "
                          "only when asked)")
     ap.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results" / "ert")
@@ -642,7 +697,12 @@ def main() -> None:
                     help="ERT's RANDOM_SEED and hmflow's [ensemble] seed (the observation "
                          "perturbations); 0: ERT 123456789, hmflow the case's")
     ap.add_argument("--name", default=None, help="results' file name (default: OUT's name)")
+    ap.add_argument("--aggregate", nargs="*", default=[], metavar="NAME",
+                    help="with --stage aggregate: the results (names) to put in one table")
     args = ap.parse_args()
+    if args.stage == "aggregate":
+        print(aggregate(args.results.resolve(), args.aggregate))
+        return
     case_path, out = args.case.resolve(), args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     name = args.name or out.name
