@@ -17,6 +17,7 @@ from hmcore.diagnosis.report import markdown_report
 from hmcore.model.case import default_history_end
 from hmcore.reporting.benchmark import case_truth
 from hmcore.reporting.html import ReportInputs, render
+from hmcore.reporting.identifiability import load_identifiability
 from hmcore.reporting.paper_tables import paper_tables
 from hmcore.reporting.report import Choice, build_report, to_jsonable
 from hmcore.reporting.results import results_table
@@ -135,11 +136,13 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     choice = Choice(scores.get("objective", "E"), scores.get("noise"), scores.get("references"))
     plots = {name: diagnosis.file(name).read_bytes()
              for name in (diagnosis_doc or {}).get("plots", []) if name in diagnosis.files}
+    identifiability = load_identifiability(store, campaign) if results is not None else None
     page = report_inputs(store, campaign, case_doc, table, best_doc, truth, curves,
                          diagnosis_doc, _diagnosis_markdown(diagnosis_doc),
-                         {n: b for n, b in plots.items() if n.endswith(".png")}, noise, choice)
+                         {n: b for n, b in plots.items() if n.endswith(".png")}, noise, choice,
+                         identifiability)
     markdown, doc = build_report(campaign, case_doc, table, best_doc, truth, diagnosis_doc,
-                                 noise, choice, page.information)
+                                 noise, choice, page.information, identifiability)
     files: dict = {"report.md": markdown, "report.json": doc, **plots}
     html, pngs = render(page)
     files["report.html"] = html
@@ -150,7 +153,8 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     return version
 
 
-REPORT_VERSION = 3  # 2: report.html; 3: held-back history, information, calls in words
+REPORT_VERSION = 4  # 2: report.html; 3: held-back history, information, calls in words;
+# 4: identifiability at the best call
 
 
 def campaign_reference(store: ArtifactStore, campaign: str) -> str:
@@ -170,10 +174,12 @@ def _diagnosis_markdown(diagnosis_doc: dict | None) -> str | None:
 def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, best_doc,
                   truth, curves: ArtifactVersion | None, diagnosis_doc: dict | None,
                   diagnosis_markdown: str | None, diagnosis_pngs: dict,
-                  noise: pd.DataFrame | None = None, choice: Choice | None = None
-                  ) -> ReportInputs:
+                  noise: pd.DataFrame | None = None, choice: Choice | None = None,
+                  identifiability=None) -> ReportInputs:
     """Load what report.html is drawn from (stored artifacts only); ``noise``: the noise the
-    fit assumed (its summary table), ``choice``: what chose the best call."""
+    fit assumed (its summary table), ``choice``: what chose the best call,
+    ``identifiability``: what the data pin down there
+    (:func:`hmcore.reporting.identifiability.load_identifiability`)."""
     case = store.latest(campaign, "case")
     observed = case.read_parquet("observed.parquet") if "observed.parquet" in case.files \
         else None
@@ -207,7 +213,8 @@ def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, be
         forecast_doc=forecast_doc, references={k: v for k, v in refs.items() if v is not None},
         truth=truth, diagnosis_markdown=diagnosis_markdown,
         diagnosis_figures=diagnosis_pngs, code=code_version(), choice=choice, noise=noise,
-        information=_information(observed, obs_rows, noise, history_end))
+        information=_information(observed, obs_rows, noise, history_end),
+        identifiability=identifiability)
 
 
 def _information(observed: pd.DataFrame | None, rows: pd.DataFrame | None,

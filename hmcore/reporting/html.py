@@ -23,6 +23,7 @@ from markupsafe import Markup
 from hmcore.ordering import natural_key
 from hmcore.reporting import figures as figs
 from hmcore.reporting.calls import Calls, calls_markdown, chart_counts, count_calls
+from hmcore.reporting.identifiability import Finding, identifiability_markdown
 from hmcore.reporting.report import (
     Choice,
     choice_markdown,
@@ -65,6 +66,7 @@ class ReportInputs:
     choice: Choice | None = None        # what chose the best call (records.json)
     noise: pd.DataFrame | None = None   # the noise the fit assumed (noise.parquet)
     information: pd.DataFrame | None = None  # hmcore.scoring.information.information_table
+    identifiability: Finding | None = None  # hmcore.reporting.identifiability
 
     @property
     def calls(self) -> Calls:
@@ -118,8 +120,8 @@ def markdown_html(text: str) -> str:
 
 def _sections(inputs: ReportInputs, calls: Calls) -> dict[str, str]:
     """The report's sections written once as Markdown (:mod:`hmcore.reporting.report`), as
-    HTML: ``choice``, ``information``, ``heldout``, ``calls``, ``convergence``, ``noise`` (a
-    section the inputs do not allow is absent)."""
+    HTML: ``choice``, ``information``, ``heldout``, ``calls``, ``convergence``,
+    ``identifiability``, ``noise`` (a section the inputs do not allow is absent)."""
     parts: dict[str, list[str]] = {"calls": calls_markdown(calls)}
     best, info = inputs.best, _information(inputs)
     if best is not None:
@@ -132,6 +134,9 @@ def _sections(inputs: ReportInputs, calls: Calls) -> dict[str, str]:
         parts["heldout"] = heldout_markdown(best, inputs.case_doc, info)
     if len(inputs.table) and "best_E_so_far" in inputs.table:
         parts["convergence"] = convergence_markdown(inputs.table, inputs.choice or Choice())
+    if best is not None and inputs.identifiability is not None:
+        parts["identifiability"] = identifiability_markdown(
+            inputs.identifiability, inputs.case_doc.get("source", "CASE"), inputs.truth)
     if inputs.noise is not None and not inputs.noise.empty:
         parts["noise"] = [noise_markdown(inputs.noise)]
     return {k: markdown_html("\n".join(v) + "\n") for k, v in parts.items()}

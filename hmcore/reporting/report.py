@@ -17,6 +17,11 @@ from hmcore.diagnosis.report import markdown_report
 from hmcore.ordering import natural_key
 from hmcore.reporting import paper_tables
 from hmcore.reporting.calls import calls_markdown, count_calls
+from hmcore.reporting.identifiability import (
+    Finding,
+    identifiability_document,
+    identifiability_markdown,
+)
 from hmcore.scoring.information import (
     INFO_COLUMNS,
     information_grid,
@@ -120,7 +125,8 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
                  diagnosis: dict | None = None,
                  noise: pd.DataFrame | None = None,
                  choice: Choice | None = None,
-                 information: pd.DataFrame | None = None) -> tuple[str, dict]:
+                 information: pd.DataFrame | None = None,
+                 identifiability: Finding | None = None) -> tuple[str, dict]:
     """Markdown report and its JSON twin from stored results (no simulator involved).
 
     ``table``: the consolidated evaluations (None: the campaign ran no calibration, e.g. a
@@ -130,7 +136,8 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
     campaign's case, or its latest refinement), a section of its own; ``choice``: what chose
     the best call (default: E, as campaigns did before the objective); ``information``: which
     responses carry information (:func:`hmcore.scoring.information.information_table`; None:
-    every scored response counts)."""
+    every scored response counts); ``identifiability``: what the data pin down at the best
+    call (:func:`hmcore.reporting.identifiability.load_identifiability`; None: no section)."""
     choice = choice or Choice()
     if table is None:
         markdown = "\n".join([f"# hmflow campaign `{campaign}`", "",
@@ -139,7 +146,8 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
         doc: dict = {"campaign": campaign, "case": case_doc["name"], "calls": 0, "best": None}
     else:
         info = information if information is not None else pd.DataFrame(columns=INFO_COLUMNS)
-        markdown, doc = _campaign_report(campaign, case_doc, table, best, truth, choice, info)
+        markdown, doc = _campaign_report(campaign, case_doc, table, best, truth, choice, info,
+                                         identifiability)
     if noise is not None and not noise.empty:
         markdown += "\n" + noise_markdown(noise)
         doc["noise"] = to_jsonable(noise.to_dict(orient="records"))
@@ -154,8 +162,8 @@ def build_report(campaign: str, case_doc: dict, table: pd.DataFrame | None, best
 
 
 def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: dict | None,
-                     truth: dict[str, float] | None, choice: Choice, info: pd.DataFrame
-                     ) -> tuple[str, dict]:
+                     truth: dict[str, float] | None, choice: Choice, info: pd.DataFrame,
+                     identifiability: Finding | None = None) -> tuple[str, dict]:
     n = len(table)
     calls = count_calls(table, case_doc.get("physics"))
     lines = [f"# hmflow campaign `{campaign}`", "",
@@ -183,6 +191,10 @@ def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: d
                   "| parameter | found | truth | error | error / range |", "|---|---|---|---|---|"]
         lines += [f"| {k} | {_fmt(d['found'])} | {_fmt(d['truth'])} | {_fmt(d['error'])} | "
                   f"{_fmt(d['error_of_range'], 3)} |" for k, d in dist.items()]
+    if identifiability is not None:
+        lines += [""] + identifiability_markdown(identifiability, case_doc.get("source", "CASE"),
+                                                 truth)
+        doc["identifiability"] = identifiability_document(identifiability, truth)
     wells = well_names(best["metrics"])
     lines += [""] + information_markdown(best["metrics"], info, "fit", wells)
     lines += [metrics_markdown(best["metrics"], "Fitted history", info, "fit")]

@@ -205,7 +205,9 @@ def tables(storage: Path = typer.Option(DEFAULT_STORAGE, "--storage"),
            markdown_out: Optional[Path] = typer.Option(None, "--markdown", help="Also write the "
                                                        "tables as Markdown to this new file")) -> None:
     """The reference paper's three tables for a stored campaign, rescored from the stored
-    summary with today's formulas (zero simulator calls)."""
+    summary with today's formulas, and for the best case what the data pin down there: each
+    parameter's sd and 95 % interval, the pairs the data cannot separate and the parameters
+    they do not inform (zero simulator calls)."""
     # the reporting and storage import pandas: keeps `hmflow --help` fast
     from hmcore.reporting.paper_tables import markdown, metrics_from_summary, paper_tables
     from storage import ArtifactStore, EvaluationJournal
@@ -243,8 +245,69 @@ def tables(storage: Path = typer.Option(DEFAULT_STORAGE, "--storage"),
     if held:
         print_tables(held, "Held-back history:")
         text += "\n" + markdown(paper_tables(held), f"{campaign}, {label}, held-back history")
+    if call is None:
+        text += "\n" + print_identifiability(store, campaign, doc.get("source", "CASE"))
     if markdown_out is not None:
         if markdown_out.exists():
             fail(f"{markdown_out} exists; hmflow never overwrites a file (choose a new name)")
         markdown_out.write_text(text)
         console.print(f"wrote {markdown_out}")
+
+
+CORRELATIONS_SHOWN = 8
+"""``hmflow tables`` prints the correlation matrix of at most this many parameters (wider, it
+points to the report)."""
+
+
+def print_identifiability(store, campaign: str, case_source: str) -> str:
+    """Print what the data pin down at a stored campaign's best call (the report's
+    identifiability section as text tables and sentences); its Markdown."""
+    # the reporting imports pandas: keeps `hmflow --help` fast
+    from rich.table import Table
+
+    from hmcore.reporting.identifiability import (
+        correlation_frame,
+        hint,
+        identifiability_markdown,
+        load_identifiability,
+        pair_sentences,
+        parameter_frame,
+        uninformed_sentences,
+    )
+
+    finding = load_identifiability(store, campaign)
+    if finding is None:
+        return ""
+    found = finding.result
+    if found is None:
+        console.print(f"Identifiability not computed. {finding.reason}", highlight=False)
+        console.print("To get one, a least-squares campaign:", highlight=False)
+        console.print("  " + escape(hint(case_source)), soft_wrap=True, highlight=False)
+        return "\n".join(identifiability_markdown(finding, case_source, level=2)) + "\n"
+    post = found.laplace
+    base = finding.stencil.base
+    where = ("the best call" if base == finding.best_index
+             else f"call {base + 1}, {finding.stencil.distance:.3g} scaled units from it")
+    title = (f"Identifiability at the best call (call {finding.best_index + 1}): Laplace "
+             f"approximation, Jacobian at {where}; chi2/(n - d) = {post.s2:.4g}, sd not "
+             "scaled by it")
+
+    def table(head: str, df) -> Table:
+        out = Table(title=head)
+        for col in df.columns:
+            out.add_column(str(col), justify="left" if col in ("parameter", "note")
+                           else "right", overflow="fold")
+        for row in df.itertuples(index=False):
+            out.add_row(*map(str, row))
+        return out
+
+    console.print(table(title, parameter_frame(found)))
+    if len(found.names) <= CORRELATIONS_SHOWN:
+        console.print(table("correlations (scaled coordinates)", correlation_frame(found)))
+    else:
+        console.print(f"(the correlation matrix of the {len(found.names)} parameters: in the "
+                      "campaign's report)", highlight=False)
+    for sentence in pair_sentences(found) + uninformed_sentences(found) or [
+            "The data separate every pair and inform every parameter."]:
+        console.print(sentence, highlight=False)
+    return "\n".join(identifiability_markdown(finding, case_source, level=2)) + "\n"
