@@ -12,6 +12,7 @@ import json
 import re
 import subprocess
 import sys
+from html import unescape
 from html.parser import HTMLParser
 
 import numpy as np
@@ -35,12 +36,80 @@ CAMPAIGN = "html-check"
 BUDGET = 4
 
 
-def dom(path) -> str:
-    """The page's DOM after its scripts ran (the figure checks run on window load)."""
-    args = [CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu",
-            "--window-size=1300,2000", "--virtual-time-budget=15000", "--dump-dom",
+def dom(path, width: int = 1300) -> str:
+    """The page's DOM after its scripts ran (the figure checks run on window load), in a
+    window ``width`` px wide."""
+    args = [CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+            f"--window-size={width},2000", "--virtual-time-budget=15000", "--dump-dom",
             path.resolve().as_uri()]
     return subprocess.run(args, capture_output=True, text=True, timeout=120, check=True).stdout
+
+
+LAYOUT_CHECK = """
+window.addEventListener("load", function () {
+  /* Every visible text box (one per line of each text node: Range.getClientRects) and every
+     image; pairs from different nodes that intersect by more than TOL px both ways. */
+  var TOL = 2, boxes = [], k = 0, node, images = [];
+  var walker = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
+  function box(id, b, what) {
+    boxes.push({id: id, what: what, x0: b.left + scrollX, x1: b.right + scrollX,
+                y0: b.top + scrollY, y1: b.bottom + scrollY});
+  }
+  while ((node = walker.nextNode())) {
+    var el = node.parentElement;
+    if (!node.textContent.trim() || !el || el.closest("script, style")) { continue; }
+    var st = getComputedStyle(el);
+    if (st.visibility !== "visible" || st.opacity === "0") { continue; }
+    var range = document.createRange();
+    range.selectNodeContents(node);
+    var rects = range.getClientRects();
+    for (var i = 0; i < rects.length; i++) {
+      if (rects[i].width >= 1 && rects[i].height >= 1) {
+        box(k, rects[i], el.tagName.toLowerCase() + ' "' + node.textContent.trim().slice(0, 50)
+            + '"');
+      }
+    }
+    k++;
+  }
+  var texts = k;
+  document.querySelectorAll("img").forEach(function (img) {
+    var b = img.getBoundingClientRect(), name = img.dataset.figure || img.alt || img.src.slice(0, 40);
+    images.push({name: name, natural: img.naturalWidth + "x" + img.naturalHeight,
+                 loaded: img.complete && img.naturalWidth > 0 && img.naturalHeight > 0,
+                 shown: [Math.round(b.width), Math.round(b.height)]});
+    box(k++, b, "img " + name);
+  });
+  boxes.sort(function (a, b) { return a.y0 - b.y0; });
+  var overlaps = [];
+  for (var i = 0; i < boxes.length; i++) {
+    var a = boxes[i];
+    for (var j = i + 1; j < boxes.length && boxes[j].y0 < a.y1 - TOL; j++) {
+      var c = boxes[j];
+      var dx = Math.min(a.x1, c.x1) - Math.max(a.x0, c.x0);
+      var dy = Math.min(a.y1, c.y1) - Math.max(a.y0, c.y0);
+      if (c.id !== a.id && dx > TOL && dy > TOL) {
+        overlaps.push(a.what + " / " + c.what + " (" + Math.round(dx) + " x " + Math.round(dy)
+                      + " px)");
+      }
+    }
+  }
+  document.body.setAttribute("data-layout", JSON.stringify({
+    texts: texts, overlaps: overlaps.slice(0, 20), images: images,
+    scroll_width: document.documentElement.scrollWidth, viewport: innerWidth}));
+});
+"""
+"""Run in the page on load: its text boxes that intersect, its images, whether it scrolls
+sideways; left as JSON in the body's ``data-layout``."""
+
+
+def layout(html: str, where, width: int) -> dict:
+    """:data:`LAYOUT_CHECK`'s findings on the page ``html`` (written to ``where``, the script
+    added before ``</body>``) in a ``width`` px window."""
+    where.write_text(html.replace("</body>", f"<script>{LAYOUT_CHECK}</script></body>"),
+                     encoding="utf-8")
+    found = re.search(r'data-layout="([^"]*)"', dom(where, width))
+    assert found, f"the layout check did not run on {where}"
+    return json.loads(unescape(found.group(1)))
 
 
 def figures_on(page: str) -> dict[str, dict[str, str]]:
@@ -99,6 +168,36 @@ def test_every_expected_figure_is_on_the_page_loaded_and_not_blank(campaign):
     again = report.fn(str(campaign), CAMPAIGN, publish_prefect_artifacts=False)
     assert again.file("report.html").read_text().count("data-figure=") == len(expected)
     assert sorted((campaign / CAMPAIGN / "runs").iterdir()) == runs_before
+
+
+@pytest.mark.opm
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")
+def test_no_text_box_overlaps_another_and_every_figure_is_shown(campaign, tmp_path):
+    """report.html in chromium at the page's width (1300 px) and in a narrow window (800 px):
+    no two visible text boxes (headings, paragraphs, cards, table cells, captions; a box per
+    line of text) intersect, no text lies on a figure, every figure is decoded and shown at a
+    non-zero size; at 1300 px the page does not scroll sideways. The check itself catches a
+    page made to overlap and an image that does not load."""
+    from storage import ArtifactStore
+
+    page = ArtifactStore(campaign).latest(CAMPAIGN, "report").file("report.html").read_text(
+        encoding="utf-8")
+    for width in (1300, 800):
+        found = layout(page, tmp_path / f"report-{width}.html", width)
+        assert found["texts"] > 100, found  # the page's text, not an empty body
+        assert not found["overlaps"], (width, found["overlaps"])
+        figures = [i for i in found["images"] if i["name"].endswith(".png")]
+        assert len(figures) >= 5, found["images"]
+        assert all(i["loaded"] and min(i["shown"]) > 50 for i in found["images"]), \
+            (width, found["images"])
+        if width == 1300:
+            assert found["scroll_width"] <= found["viewport"], found
+    bad = ('<html><body><h2 style="position:absolute; top:10px">a heading</h2>'
+           '<p style="position:absolute; top:18px; left:30px">a paragraph on it</p>'
+           '<img src="no-such-figure.png" alt="missing" style="margin-top:120px"></body></html>')
+    caught = layout(bad, tmp_path / "overlapping.html", 800)
+    assert len(caught["overlaps"]) == 1 and "a heading" in caught["overlaps"][0], caught
+    assert not caught["images"][0]["loaded"], caught
 
 
 @pytest.mark.opm
@@ -273,6 +372,144 @@ def test_a_first_reading_finds_the_best_case_held_back_information_and_calls(cam
     assert m[0] in markdown and doc["call_states"] == {
         "valid": int(m[2]), "penalised": int(m[3]), "failed": int(m[4])}
     assert not re.search(r"\b(COMPLETE|INVALID)\b|\{'", page.text + markdown)
+
+
+# ------------------------------------------------------------------ the figures, drawn
+def drawn(make, monkeypatch) -> tuple:
+    """The figure ``make()`` draws (caught at :func:`hmcore.reporting.figures.png`), drawn
+    once, and every text matplotlib drew on it (tick labels outside the view and hidden ones
+    are not drawn): (figure, [(text artist, its box in pixels)])."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.text import Text
+
+    from hmcore.reporting import figures
+
+    made, texts, draw = [], [], Text.draw
+
+    def record(self, renderer):
+        draw(self, renderer)
+        if self.get_visible() and self.get_text().strip():
+            texts.append((self, self.get_window_extent(renderer)))
+
+    monkeypatch.setattr(figures, "png", lambda fig: made.append(fig) or b"")
+    make()
+    monkeypatch.setattr(Text, "draw", record)
+    FigureCanvasAgg(made[0])
+    made[0].draw_without_rendering()  # lays out and places every artist, paints no pixel
+    monkeypatch.undo()
+    return made[0], texts
+
+
+def overlaps(fig, texts) -> list[str]:
+    """Pairs that cover each other by more than a pixel both ways: two texts, a legend and a
+    text not its own, a panel and a text or a figure legend that is not its own."""
+    renderer = fig.canvas.get_renderer()
+    legends = [*fig.legends, *(a.get_legend() for a in fig.axes if a.get_legend())]
+    panels = [a for a in fig.axes if a.get_visible()]
+
+    def cover(a, b) -> bool:
+        return (min(a.x1, b.x1) - max(a.x0, b.x0) > 1) and (min(a.y1, b.y1) - max(a.y0, b.y0) > 1)
+
+    found = [f"{s.get_text()!r} / {t.get_text()!r}" for i, (s, a) in enumerate(texts)
+             for t, b in texts[i + 1:] if cover(a, b)]
+    for leg in legends:
+        box, own = leg.get_window_extent(renderer), set(leg.get_texts())
+        found += [f"legend / {t.get_text()!r}" for t, b in texts
+                  if t not in own and t is not leg.get_title() and cover(box, b)]
+        if leg in fig.legends:
+            found += [f"legend / panel {p.get_title()!r}" for p in panels
+                      if cover(box, p.get_window_extent(renderer))]
+    for p in panels:
+        box = p.get_window_extent(renderer)
+        found += [f"panel {p.get_title()!r} / {t.get_text()!r}" for t, b in texts
+                  if t.axes is not p and t.axes is not None and cover(box, b)]
+    return found
+
+
+def producer_history(days: np.ndarray) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """A producer's observed history (a rate control with shut-ins, a water rate and water
+    cut of noise about 0, gas, BHP, GOR) and its curves: prior centre, truth, best case."""
+    rng = np.random.default_rng(3)
+    shut = (days % 365) < 15
+    base = {"WOPR": np.where(shut, 0.0, 200.0), "WWPR": np.zeros_like(days),
+            "WGPR": np.where(shut, 0.0, 40000 - 5 * days), "WBHP": 190 - 0.02 * days,
+            "WGOR": 200 - 0.03 * days, "WWCT": np.zeros_like(days)}
+    units = {"WOPR": "SM3/DAY", "WWPR": "SM3/DAY", "WGPR": "SM3/DAY", "WBHP": "BARSA",
+             "WGOR": "SM3/SM3", "WWCT": ""}
+    sigma = {"WOPR": 0.0, "WWPR": 3.0, "WGPR": 4000.0, "WBHP": 2.0, "WGOR": 20.0, "WWCT": 0.015}
+    observed = pd.concat(pd.DataFrame({
+        "quantity": q, "days": days, "sigma": sigma[q],
+        "observed": np.maximum(v + rng.normal(0, sigma[q] or 1e-9, days.size), 0.0),
+        "period": np.where(days > 1900, "heldout", "fit")}) for q, v in base.items())
+    curves = pd.concat(pd.DataFrame({
+        "well": "PROD1", "member": m, "quantity": q, "days": days, "unit": units[q],
+        "value": v * (1.15 if m == "centre" and q != "WOPR" else 1.0)})
+        for m in ("centre", "truth", "best") for q, v in base.items())
+    return observed, curves
+
+
+def test_the_figures_have_no_text_on_text_the_truth_on_top_and_axes_that_fit(monkeypatch):
+    """Issue 45, item 6, on the figures themselves (PNGs: the browser sees no text in them):
+    the best parameters against their bounds (a value near the top row under the title, a
+    bound under the legend, before), the well panels (a unit label on the next panel), the
+    parameter traces, the fan, best-so-far, failures and the heatmap draw no text over
+    another, a legend or another panel; the truth is drawn dashed above the best case it
+    matches; a water cut below 0.05 gets an axis of a few percent, not 0-1."""
+    from hmcore.reporting import figures as figs
+
+    bounds = {"poro_mult": (0.8, 1.2), "permx_mult": (0.3, 3.0), "permy_mult": (0.3, 3.0),
+              "permz_mult": (0.3, 3.0), "skin": (-5.0, 15.0)}
+    best = {"poro_mult": 1.078, "permx_mult": 1.61, "permy_mult": 0.5964,
+            "permz_mult": 0.4716, "skin": 14.2}
+    truth = {"poro_mult": 1.08, "permx_mult": 1.7, "permy_mult": 0.6, "permz_mult": 0.5,
+             "skin": 14.0}
+    days = np.arange(30.0, 2560.0, 30.0)
+    observed, curves = producer_history(days)
+    observed.loc[observed.quantity == "WWCT", "observed"] = np.clip(
+        observed.loc[observed.quantity == "WWCT", "observed"], 0, 0.045)
+    rng = np.random.default_rng(0)
+    n = 200
+    table = pd.DataFrame({"index": np.arange(n), "status": rng.choice(
+        ["COMPLETE", "COMPLETE", "INVALID", "FAIL"], n),
+        "E": 0.003 + rng.exponential(0.01, n),
+        **{f"p_{k}": rng.uniform(lo, hi, n) for k, (lo, hi) in bounds.items()}})
+    table["best_E_so_far"] = table.E.where(table.status == "COMPLETE").cummin().bfill()
+    fan = pd.concat(pd.DataFrame({"well": "FIELD", "member": m, "quantity": q, "days": days,
+                                  "unit": "SM3", "value": days * scale * (1 + k / 100)})
+                    for k, m in enumerate(["truth", "centre", *(f"call-{i}" for i in range(10))])
+                    for q, scale in (("FOPT", 650.0), ("FWPT", 50.0), ("FGPT", 9e4)))
+    wells = pd.DataFrame({"well": ["PROD1", "PROD2"], "oil": [100.0, 100.0],
+                          "water": [50.1, 92.6], "gas": [96.7, 98.8], "bhp": [100.0, 100.0]})
+    makes = {
+        "parameters_vs_bounds": lambda: figs.best_against_bounds(bounds, best, truth),
+        "well": lambda: figs.well_curves("PROD1", observed, curves, 1900.0),
+        "parameter_traces": lambda: figs.parameter_traces(table, bounds, best),
+        "forecast_fan": lambda: figs.forecast_fan(fan, [("FOPT", "field cumulative oil"),
+                                                        ("FWPT", "field cumulative water"),
+                                                        ("FGPT", "field cumulative gas")],
+                                                  1900.0),
+        "best_so_far": lambda: figs.best_so_far(table, 0.0029, 0.014),
+        "failures": lambda: figs.failures({"failed: no convergence": 3,
+                                           "penalised: porosity-permeability trend": 32}),
+        "cmatch_heatmap": lambda: figs.cmatch_heatmap(
+            wells, {("PROD1", "oil"): "rate control", ("PROD1", "water"): "near zero"})}
+    drawn_figures = {}
+    for name, make in makes.items():
+        fig, texts = drawn(make, monkeypatch)
+        assert len(texts) > 5, name
+        assert not overlaps(fig, texts), (name, overlaps(fig, texts))
+        drawn_figures[name] = fig
+    panels = {a.get_title(): a for a in drawn_figures["well"].axes if a.get_visible()}
+    for title, ax in panels.items():
+        lines = {ln.get_label(): ln for ln in ax.get_lines()}
+        truth_line, best_line = lines["truth"], lines["best case"]
+        assert truth_line.get_zorder() > best_line.get_zorder(), title
+        assert truth_line.get_linestyle() != "-", title  # dashed: the best case shows through
+    low, high = panels["PROD1: water cut"].get_ylim()
+    assert -0.01 < low <= 0 and 0.045 < high < 0.1, (low, high)
+    fan_truth = [ln for a in drawn_figures["forecast_fan"].axes for ln in a.get_lines()
+                 if ln.get_label() == "truth"]
+    assert fan_truth and all(ln.get_zorder() > 2 for ln in fan_truth)
 
 
 def test_a_response_without_information_is_grey_in_the_heatmap_not_coloured():

@@ -15,6 +15,7 @@ import math
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
+from matplotlib.layout_engine import ConstrainedLayoutEngine
 
 from hmcore.scoring.information import NoInformation
 
@@ -23,10 +24,14 @@ PANELS = (("WOPR", "oil rate"), ("WWPR", "water rate"), ("WGPR", "gas rate"),
           ("WBHP", "bottom-hole pressure"), ("WGOR", "gas-oil ratio"), ("WWCT", "water cut"))
 INJECTOR_PANELS = (("WWIR", "water injection rate"), ("WGIR", "gas injection rate"),
                    ("WBHP", "bottom-hole pressure"))
-STYLE = {"best": dict(color="#1f5fbf", lw=1.8, label="best case"),
-         "centre": dict(color="#888888", lw=1.2, ls="--", label="prior centre"),
-         "truth": dict(color="#2e8b57", lw=1.1, label="truth"),
-         "deck": dict(color="#2e8b57", lw=1.2, ls=":", label="deck's own values")}
+STYLE = {"best": {"color": "#1f5fbf", "lw": 1.8, "label": "best case", "zorder": 2.5},
+         "centre": {"color": "#888888", "lw": 1.2, "ls": "--", "label": "prior centre"},
+         "truth": {"color": "#111111", "lw": 1.3, "ls": (0, (4, 2.5)), "label": "truth",
+                   "zorder": 3},
+         "deck": {"color": "#111111", "lw": 1.3, "ls": ":", "label": "deck's own values",
+                  "zorder": 3}}
+"""Line styles; the truth (or the deck's own values) dashed black above the best case, which a
+good match hides it under otherwise: the best case shows through its gaps."""
 DPI = 90
 
 
@@ -55,7 +60,7 @@ def well_curves(well: str, observed: pd.DataFrame, curves: pd.DataFrame,
     end = float(curves.days.max()) if len(curves) else None
     panels = panels_of(observed, curves)
     rows = 2 if len(panels) > 3 else 1
-    fig = Figure(figsize=(13, 6.4 if rows == 2 else 3.6))
+    fig = Figure(figsize=(11.5, 6.2 if rows == 2 else 3.5), layout="constrained")
     axes = fig.subplots(rows, 3, sharex=True, squeeze=False)
     for ax in axes.flat[len(panels):]:
         ax.set_visible(False)
@@ -63,7 +68,7 @@ def well_curves(well: str, observed: pd.DataFrame, curves: pd.DataFrame,
         obs = observed[observed.quantity == q].sort_values("days")
         shade_periods(ax, observed, history_end, end)
         observed_points(ax, q, obs)
-        for member in ("centre", "deck", "truth", "best"):
+        for member in ("centre", "best", "deck", "truth"):  # the truth last, on top
             sel = curves[(curves.member == member) & (curves.quantity == q)].sort_values("days")
             if len(sel):
                 ax.plot(sel.days, sel.value, **STYLE[member])
@@ -98,29 +103,44 @@ def observed_points(ax, quantity: str, obs: pd.DataFrame) -> None:
         lo, hi = noise_band(quantity, obs.observed.to_numpy(float), obs.sigma.to_numpy(float))
         ax.fill_between(obs.days, lo, hi, color="#d62728", alpha=0.15, lw=0,
                         label="observed \u00b1 1 sigma")
-        ax.plot(obs.days, obs.observed, "o", ms=3, color="#d62728", label="observed")
+        ax.plot(obs.days, obs.observed, "o", ms=3, color="#d62728", label="observed",
+                zorder=2.7)  # above the best case, below the truth's dashes
 
 
 def response_axis(ax, quantity: str) -> None:
-    """A response panel's y range (water cut 0-1, everything else from 0) and grid."""
+    """A response panel's y range, from 0 to what the panel draws (a water cut of a few
+    percent on an axis of a few percent, never above 1), a little below 0 so that points at
+    0 show; and its grid."""
+    ax.autoscale_view()
+    top = ax.get_ylim()[1]
     if quantity == "WWCT":
-        ax.set_ylim(-0.02, 1.02)
-    else:
-        ax.set_ylim(bottom=0)
+        top = min(top, 1.02)
+    top = top if top > 0 else 1.0
+    ax.set_ylim(-0.02 * top, top)
     ax.grid(alpha=0.3)
 
 
 def shared_legend(fig: Figure, axes: np.ndarray, rows: int, ncol: int | None = None) -> None:
     """One legend below the panels with every label any panel drew, once (``ncol`` columns;
-    all in one row by default)."""
+    all in one row by default); in a constrained layout, outside the panels, which make room
+    for it. ``rows`` (the panels' rows) no longer matters: the legend hangs below them."""
     handles, labels = axes.flat[0].get_legend_handles_labels()
     for ax in axes.flat[1:]:
         for h, lab in zip(*ax.get_legend_handles_labels()):
             if lab not in labels:
                 handles.append(h)
                 labels.append(lab)
-    fig.legend(handles, labels, loc="lower center", ncol=ncol or len(labels), frameon=False,
-               bbox_to_anchor=(0.5, -0.04 if rows == 2 else -0.12))
+    if _constrained(fig):
+        fig.legend(handles, labels, loc="outside lower center", ncol=ncol or len(labels),
+                   frameon=False)
+        return
+    # otherwise hung from the figure's bottom edge, below the x labels (PNGs are cut to fit)
+    fig.legend(handles, labels, loc="upper center", ncol=ncol or len(labels), frameon=False,
+               bbox_to_anchor=(0.5, 0.0))
+
+
+def _constrained(fig: Figure) -> bool:
+    return isinstance(fig.get_layout_engine(), ConstrainedLayoutEngine)
 
 
 def panels_of(observed: pd.DataFrame, curves: pd.DataFrame) -> tuple[tuple[str, str], ...]:
@@ -222,7 +242,7 @@ def parameter_traces(table: pd.DataFrame, bounds: dict[str, tuple[float, float]]
     """Each parameter's value at every call (valid, penalised, failed) within its bounds, and
     the best case's value."""
     names = list(bounds)
-    fig = Figure(figsize=(10, 1.9 * len(names) + 0.6))
+    fig = Figure(figsize=(8.5, 1.7 * len(names) + 0.9), layout="constrained")
     axes = np.atleast_1d(fig.subplots(len(names), 1, sharex=True))
     calls = table["index"].to_numpy(int) + 1
     colours = {"COMPLETE": "#1f5fbf", "INVALID": "#e69f00", "FAIL": "#d62728"}
@@ -239,19 +259,23 @@ def parameter_traces(table: pd.DataFrame, bounds: dict[str, tuple[float, float]]
         ax.axhline(hi, color="#444444", lw=0.8)
         if best and name in best:
             ax.axhline(best[name], color="#2e8b57", lw=1.5, ls="--", label="best")
+        pad = 0.08 * (hi - lo) if hi > lo else 1.0
+        ax.set_ylim(lo - pad, hi + pad)  # the bounds inside the panel, not on its frame
         ax.set_ylabel(name, fontsize=8)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7, ncol=4, loc="upper right")
     axes[-1].set_xlabel("simulator call")
     axes[0].set_title("Parameter values proposed, call by call (lines: bounds)", fontsize=10)
+    shared_legend(fig, axes, len(names))  # below the panels: over the first, it hid calls
     return png(fig)
 
 
 def best_against_bounds(bounds: dict[str, tuple[float, float]], best: dict[str, float],
                         truth: dict[str, float] | None) -> bytes:
-    """Where the best value sits in each parameter's range (0 = low bound, 1 = high)."""
+    """Where the best value sits in each parameter's range (0 = low bound, 1 = high): a row
+    per parameter, its bounds at the ends, the best value over its marker (room kept above
+    the first row, clear of the title), the legend below the axes (never over a bound)."""
     names = list(bounds)
-    fig = Figure(figsize=(8, 0.5 * len(names) + 1.2))
+    fig = Figure(figsize=(8, 0.5 * len(names) + 1.4), layout="constrained")
     ax = fig.subplots()
     for i, name in enumerate(names):
         lo, hi = bounds[name]
@@ -268,9 +292,12 @@ def best_against_bounds(bounds: dict[str, tuple[float, float]], best: dict[str, 
     ax.set_yticks(range(len(names)), names)
     ax.set_xlim(-0.12, 1.12)
     ax.set_xticks([])
-    ax.invert_yaxis()
-    ax.legend(fontsize=8, loc="lower right")
-    ax.set_title("Best parameters within their bounds", fontsize=10)
+    ax.set_ylim(len(names) - 0.5, -0.85)  # top to bottom; the first row's label under the title
+    for side in ("top", "right", "bottom"):
+        ax.spines[side].set_visible(False)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=2,
+              frameon=False)
+    ax.set_title("Best parameters within their bounds (ends: the bounds)", fontsize=10)
     return png(fig)
 
 
@@ -291,7 +318,7 @@ def failures(kinds: dict[str, int]) -> bytes:
 def forecast_fan(curves: pd.DataFrame, quantities: list[tuple[str, str]], history_end: float | None
                  ) -> bytes:
     """Field cumulatives of the forecast members: P90-P10 band, P50, members, truth, best."""
-    fig = Figure(figsize=(5 * len(quantities), 3.8))
+    fig = Figure(figsize=(4.2 * len(quantities), 3.6), layout="constrained")
     axes = np.atleast_1d(fig.subplots(1, len(quantities)))
     for ax, (q, title) in zip(axes, quantities):
         sel = curves[(curves.well == "FIELD") & (curves.quantity == q)]
@@ -304,7 +331,7 @@ def forecast_fan(curves: pd.DataFrame, quantities: list[tuple[str, str]], histor
             ax.fill_between(wide.index, qs[0], qs[2], color="#1f5fbf", alpha=0.2,
                             label="P90-P10 of members")
             ax.plot(wide.index, qs[1], color="#1f5fbf", lw=2, label="P50")
-        for member in ("truth", "centre"):
+        for member in ("centre", "truth"):  # the truth last, on top of the P50
             ref = sel[sel.member == member].sort_values("days")
             if len(ref):
                 ax.plot(ref.days, ref.value, **STYLE[member])
@@ -314,5 +341,5 @@ def forecast_fan(curves: pd.DataFrame, quantities: list[tuple[str, str]], histor
         ax.set_xlabel("days since start")
         ax.set_ylabel(unit_of(sel, q))
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+    shared_legend(fig, axes, 1)
     return png(fig)
