@@ -454,7 +454,8 @@ def test_the_figures_have_no_text_on_text_the_truth_on_top_and_axes_that_fit(mon
     bound under the legend, before), the well panels (a unit label on the next panel), the
     parameter traces, the fan, best-so-far, failures and the heatmap draw no text over
     another, a legend or another panel; the truth is drawn dashed above the best case it
-    matches; a water cut below 0.05 gets an axis of a few percent, not 0-1."""
+    matches; a water cut below 0.05 gets an axis of a few percent, not 0-1; the heatmap has no
+    column that no well has (injection, without injectors)."""
     from hmcore.reporting import figures as figs
 
     bounds = {"poro_mult": (0.8, 1.2), "permx_mult": (0.3, 3.0), "permy_mult": (0.3, 3.0),
@@ -479,7 +480,8 @@ def test_the_figures_have_no_text_on_text_the_truth_on_top_and_axes_that_fit(mon
                     for k, m in enumerate(["truth", "centre", *(f"call-{i}" for i in range(10))])
                     for q, scale in (("FOPT", 650.0), ("FWPT", 50.0), ("FGPT", 9e4)))
     wells = pd.DataFrame({"well": ["PROD1", "PROD2"], "oil": [100.0, 100.0],
-                          "water": [50.1, 92.6], "gas": [96.7, 98.8], "bhp": [100.0, 100.0]})
+                          "water": [50.1, 92.6], "gas": [96.7, 98.8], "bhp": [100.0, 100.0],
+                          "water_inj": [np.nan, np.nan]})
     makes = {
         "parameters_vs_bounds": lambda: figs.best_against_bounds(bounds, best, truth),
         "well": lambda: figs.well_curves("PROD1", observed, curves, 1900.0),
@@ -507,6 +509,8 @@ def test_the_figures_have_no_text_on_text_the_truth_on_top_and_axes_that_fit(mon
         assert truth_line.get_linestyle() != "-", title  # dashed: the best case shows through
     low, high = panels["PROD1: water cut"].get_ylim()
     assert -0.01 < low <= 0 and 0.045 < high < 0.1, (low, high)
+    heatmap = drawn_figures["cmatch_heatmap"].axes[0]  # no column of n/a: no injector
+    assert [t.get_text() for t in heatmap.get_xticklabels()] == ["oil", "water", "gas", "bhp"]
     fan_truth = [ln for a in drawn_figures["forecast_fan"].axes for ln in a.get_lines()
                  if ln.get_label() == "truth"]
     assert fan_truth and all(ln.get_zorder() > 2 for ln in fan_truth)

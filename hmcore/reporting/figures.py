@@ -204,7 +204,9 @@ def heatmap_figure(wells: pd.DataFrame, marks: dict[tuple[str, str], str] | None
     followed by the reason in short (:data:`SHORT_WHY`), never coloured as a match or a miss
     (the coloured image, the figure's second, masks it)."""
     marks = marks or {}
-    cats = [c for c in wells.columns if c != "well"]
+    # a response no well has (injection in a field without injectors) is no column of n/a
+    cats = [c for c in wells.columns if c != "well" and wells[c].notna().any()] or [
+        c for c in wells.columns if c != "well"]
     data = wells[cats].to_numpy(float)
     grey = np.array([[(w, c) in marks for c in cats] for w in wells.well], bool).reshape(
         data.shape)
