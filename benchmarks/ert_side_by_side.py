@@ -79,15 +79,15 @@ import tomlkit
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from hmcore.cases import load_case  # noqa: E402
-from hmcore.fields.assimilation import draw_ensemble  # noqa: E402
-from hmcore.fields.grdecl import INACTIVE_VALUE, read_grdecl, write_grdecl  # noqa: E402
-from hmcore.fields.grid import read_grid  # noqa: E402
-from hmcore.fields.transform import to_physical, to_update_space  # noqa: E402
-from hmcore.scoring.observations import ObservationSet  # noqa: E402
-from hmcore.simulation.curves import read_curves  # noqa: E402
-from hmcore.simulation.forecast import forecast_table  # noqa: E402
-from hmcore.simulation.responses import read_responses  # noqa: E402
+from hmcore.cases import load_case
+from hmcore.fields.assimilation import draw_ensemble
+from hmcore.fields.grdecl import INACTIVE_VALUE, read_grdecl, write_grdecl
+from hmcore.fields.grid import read_grid
+from hmcore.fields.transform import to_physical, to_update_space
+from hmcore.scoring.observations import ObservationSet
+from hmcore.simulation.curves import read_curves
+from hmcore.simulation.forecast import forecast_table
+from hmcore.simulation.responses import read_responses
 
 PYTHON = Path(sys.executable)
 HMFLOW = PYTHON.parent / "hmflow"
@@ -175,7 +175,7 @@ def write_hmflow_case(case_path: Path, dest: Path, white: bool = False, seed: in
 def ert_deck(text: str, includes: list[str], copies: list[tuple[str, str]]) -> str:
     """The deck with ERT's field files included at the end of GRID (before PROPS or EDIT) and
     the case's copies after them."""
-    lines = [f"-- ERT's FIELD parameters, written by ERT into each run path\n"]
+    lines = ["-- ERT's FIELD parameters, written by ERT into each run path\n"]
     lines += [f"INCLUDE\n  '{name}' /\n\n" for name in includes]
     if copies:
         lines.append("COPY\n" + "".join(f"  {a} {b} /\n" for a, b in copies) + "/\n\n")
@@ -219,7 +219,7 @@ def write_ert_config(case, grid, ert_dir: Path, prior: Path, seed: int = 0) -> P
     blocks = []
     for r in rows.itertuples():
         date = start + dt.timedelta(days=float(r.days))
-        name = f"{r.quantity}_{r.well}_{int(round(r.days))}"
+        name = f"{r.quantity}_{r.well}_{round(r.days)}"
         blocks.append(f"SUMMARY_OBSERVATION {name}\n{{\n   VALUE = {r.observed!r};\n"
                       f"   ERROR = {float(r.sigma)!r};\n   DATE  = {date:%Y-%m-%d};\n"
                       f"   KEY   = {r.quantity}:{r.well};\n}};\n")
@@ -272,11 +272,11 @@ def timed(cmd: list[str], cwd: Path, log: Path, record: Path, env: dict | None =
     started = time.time()
     load = os.getloadavg()
     with open(log, "w") as fh:
-        proc = subprocess.run(cmd, cwd=cwd, stdout=fh, stderr=subprocess.STDOUT,
+        proc = subprocess.run(cmd, cwd=cwd, stdout=fh, stderr=subprocess.STDOUT, check=False,
                               env={**os.environ, **(env or {})})
     doc = {"command": cmd, "cwd": str(cwd), "returncode": proc.returncode,
            "wall_s": time.time() - started, "started": dt.datetime.fromtimestamp(
-               started, dt.timezone.utc).isoformat(timespec="seconds"),
+               started, dt.UTC).isoformat(timespec="seconds"),
            "load_at_start": load, "load_at_end": os.getloadavg(), "log": str(log)}
     record.write_text(json.dumps(doc, indent=2) + "\n")
     print(f"{' '.join(cmd)}: exit {proc.returncode} after {doc['wall_s']:.0f} s (log {log})")
@@ -416,13 +416,13 @@ def ert_report(out: Path) -> dict:
     for path in sorted((out / "ert" / "update_log").glob("*/Report.csv"),
                        key=lambda p: p.stat().st_mtime):
         report = pd.read_csv(path)
-        updates.append({"log": str(path), "observations": int(len(report)),
+        updates.append({"log": str(path), "observations": len(report),
                         "status": {str(k): int(v) for k, v in
                                    report.status.value_counts().items()},
                         "obs_error_scaling": sorted(set(np.round(
                             report.obs_error_scaling.astype(float), 4).tolist())),
-                        "missing_realizations": sorted(set(
-                            str(x) for x in report.missing_realizations.dropna()))})
+                        "missing_realizations": sorted({
+                            str(x) for x in report.missing_realizations.dropna()})})
     monitor = ("Waiting", "Pending", "Running", "Failed", "Finished", "Unknown", "-->", "|")
     said = [ln.strip() for ln in lines if not ln.strip().startswith(monitor)
             and "Running time" not in ln]
@@ -500,7 +500,7 @@ def compare(case_path: Path, out: Path, results: Path, name: str, seed: int = 0)
                  "outside_runs_s": wall - sum(spans) if wall is not None else None}
         for label, i in (("prior", 0), ("posterior", last)):
             s = t[(t.iteration == i) & t.ok]
-            entry[f"{label}_runs_ok"] = int(len(s))
+            entry[f"{label}_runs_ok"] = len(s)
             for col in ("misfit_diag", "misfit_ar1"):
                 entry[f"{label}_{col}_median"] = float(s[col].median()) if len(s) else None
                 entry[f"{label}_{col}_mean"] = float(s[col].mean()) if len(s) else None
@@ -527,7 +527,7 @@ def compare(case_path: Path, out: Path, results: Path, name: str, seed: int = 0)
            "date": dt.date.today().isoformat(), "machine": machine(),
            "ensemble": case.ensemble.model_dump(mode="json"), "rounds": rounds,
            "seed": seed, "ert_random_seed": seed or 123456789,
-           "observations": {"rows": int(len(obs.vector_index("fit"))), "rho": obs.rho},
+           "observations": {"rows": len(obs.vector_index("fit")), "rho": obs.rho},
            "truth_FOPT": truth.get(("FIELD", "FOPT")), "summary": summary, "fields": fields,
            "timing": timing, "ert_report": ert_report(out),
            **{f"{t}_report": hmflow_report(out, t) for t in tools[1:]},
@@ -664,9 +664,9 @@ def aggregate(results: Path, names: list[str]) -> str:
             "rmse_poro", "rmse_log10_permx", "spread_poro", "spread_log10_permx", "wall_s",
             "runs_overhead"]
     mean = table.groupby("tool")[cols].mean()
-    lines = ["| tool | seed | misfit (diag) | misfit (AR1) | FOPT P90/P50/P10 e6 | truth in "
-             "FOPT band | wells+FOPT inside | RMSE poro | RMSE log10 k | wall s | "
-             "run overhead |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [("| tool | seed | misfit (diag) | misfit (AR1) | FOPT P90/P50/P10 e6 | truth in "
+              "FOPT band | wells+FOPT inside | RMSE poro | RMSE log10 k | wall s | "
+              "run overhead |"), "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in table.itertuples():
         lines.append(f"| {r.tool} | {r.seed} | {r.misfit_diag:.2f} | {r.misfit_ar1:.2f} | "
                      f"{r.fopt_p90 / 1e6:.3f}/{r.fopt_p50 / 1e6:.3f}/{r.fopt_p10 / 1e6:.3f} | "
