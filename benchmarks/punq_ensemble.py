@@ -48,6 +48,7 @@ from hmcore.fields.grdecl import write_grdecl  # noqa: E402
 from hmcore.fields.grid import read_grid  # noqa: E402
 from hmcore.fields.layout import Layout  # noqa: E402
 from hmcore.fields.members import ensemble_matrix, ensemble_table  # noqa: E402
+from hmcore.fields.spread import kept  # noqa: E402
 from hmcore.fields.transform import to_update_space  # noqa: E402
 from hmcore.scenarios.field_truth import (  # noqa: E402
     FIELD_KIND,
@@ -161,9 +162,8 @@ def layer_errors(store: ArtifactStore, campaign: str, truth_doc: dict, last: int
     layer = active // (dims[0] * dims[1]) + 1  # k of each active cell, 1-based
     rows = []
     for i, label in ((0, "prior"), (last, "posterior")):
-        X = ensemble_matrix(store.latest(campaign, ensemble_step(i)).read_parquet(ENSEMBLE_FILE),
-                            layout).astype(np.float64)
-        X = X[np.isfinite(X).all(axis=1)]
+        X = kept(ensemble_matrix(store.latest(campaign, ensemble_step(i)).read_parquet(
+            ENSEMBLE_FILE), layout))
         for name in layout.fields:
             cols = layout.columns(name)
             for k in np.unique(layer):

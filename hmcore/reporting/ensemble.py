@@ -30,7 +30,7 @@ import pandas as pd
 from markdown_it import MarkdownIt
 
 from hmcore.fields.spec import FieldSpec
-from hmcore.fields.spread import COLLAPSED, FieldSpread, field_spread
+from hmcore.fields.spread import COLLAPSED, FieldSpread, field_spread, kept
 from hmcore.ordering import natural_key
 from hmcore.reporting import ensemble_figures as figs
 from hmcore.reporting.ensemble_truth import FieldTruth
@@ -94,12 +94,12 @@ def to_layers(values: np.ndarray, dims: tuple[int, int, int], active: np.ndarray
 def mean_and_std(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and standard deviation (ddof 1; 0 for one member) over the members of ``X``
     ``(members, n)`` that are not left out (rows with a NaN)."""
-    X = np.asarray(X, np.float64)
-    kept = X[np.isfinite(X).all(axis=1)]
-    if not len(kept):
-        return np.full(X.shape[1], np.nan), np.full(X.shape[1], np.nan)
-    std = kept.std(axis=0, ddof=1) if len(kept) > 1 else np.zeros(X.shape[1])
-    return kept.mean(axis=0), std
+    n = np.shape(X)[1]
+    members = kept(X)
+    if not len(members):
+        return np.full(n, np.nan), np.full(n, np.nan)
+    std = members.std(axis=0, ddof=1) if len(members) > 1 else np.zeros(n)
+    return members.mean(axis=0), std
 
 
 def field_layer_maps(inputs: EnsembleReportInputs, name: str) -> list[dict[str, np.ndarray]]:
