@@ -45,6 +45,7 @@ from pydantic import BaseModel, Discriminator, Tag, TypeAdapter, ValidationError
 
 from hmcore.eclipse.deck_info import ParsedDeck
 from hmcore.errors import CaseError, Problem
+from hmcore.fields.deck_edits import copy_problems, grid_copies, grid_scalings, scaling_problems
 from hmcore.fields.ensemble import EnsembleSpec
 from hmcore.fields.fieldset import field_set_problems
 from hmcore.fields.spec import (
@@ -157,12 +158,6 @@ def field_problems(case_file: Path, fields: Sequence[tuple[int, FieldSpec]],
     keyword for every cell or active cell, values in range:
     :func:`~hmcore.fields.realisations.read_realisations`; ``size`` None: the files there)."""
     # these import opm.io: keeps start-up fast (reading a case without fields never loads it)
-    from hmcore.fields.deck_edits import (
-        copy_problems,
-        grid_copies,
-        grid_scalings,
-        scaling_problems,
-    )
     from hmcore.fields.grid import from_parsed
     from hmcore.fields.realisations import read_realisations, realisation_files
     from hmcore.fields.zones import prior_problems
