@@ -267,19 +267,20 @@ def prefect_api(tmp_path_factory) -> Iterator[str]:
             env=env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + PREFECT_API_STARTUP_S
-        while True:
-            if proc.poll() is not None:
-                pytest.fail(f"the session's Prefect server exited with {proc.returncode}:\n"
-                            + (logs / "server.log").read_text(errors="replace")[-3000:])
-            try:
-                if httpx.get(f"{url}/health", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            if time.monotonic() > deadline:
-                pytest.fail(f"the session's Prefect server did not answer on {url} in "
-                            f"{PREFECT_API_STARTUP_S} s")
-            time.sleep(0.2)
+        with httpx.Client(timeout=2) as client:  # one TLS context, not one per poll
+            while True:
+                if proc.poll() is not None:
+                    pytest.fail(f"the session's Prefect server exited with {proc.returncode}:\n"
+                                + (logs / "server.log").read_text(errors="replace")[-3000:])
+                try:
+                    if client.get(f"{url}/health").status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    pass
+                if time.monotonic() > deadline:
+                    pytest.fail(f"the session's Prefect server did not answer on {url} in "
+                                f"{PREFECT_API_STARTUP_S} s")
+                time.sleep(0.2)
         yield url
     finally:
         proc.terminate()

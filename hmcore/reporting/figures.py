@@ -37,9 +37,11 @@ DPI = 90
 
 def png(fig: Figure) -> bytes:
     """``fig`` as PNG bytes; zlib level 1: the same pixels as the default level 6, encoded
-    about twice as fast, in files about a fifth larger."""
+    about twice as fast, in files about a fifth larger. A figure in a constrained layout
+    already fits its canvas, so it is drawn once, without the extra draw of
+    ``bbox_inches="tight"`` (a quarter of a well figure's time)."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight",
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches=None if _constrained(fig) else "tight",
                 pil_kwargs={"compress_level": 1})
     return buf.getvalue()
 
