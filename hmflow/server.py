@@ -58,7 +58,7 @@ def temporary_api() -> Iterator[str | None]:
          "--port", str(port), "--log-level", "error", "--lifespan", "on"],
         env=env, preexec_fn=_die_with_parent)
     try:
-        _wait_until_healthy(proc, url, port)
+        wait_until_healthy(proc, url, STARTUP_TIMEOUT_S)
         os.environ["PREFECT_API_URL"] = url
         yield url
     finally:
@@ -72,24 +72,25 @@ def temporary_api() -> Iterator[str | None]:
             proc.wait()
 
 
-def _wait_until_healthy(proc: subprocess.Popen, url: str, port: int) -> None:
-    """Poll ``url``'s health until it answers 200; raise if the server exits or the timeout
-    passes. One client for every poll: a client per poll (``httpx.get``) built a TLS context
-    each time, about 0.1 s of CPU, 50 times per start, on the core the server starts on."""
+def wait_until_healthy(proc: subprocess.Popen, url: str, timeout_s: float) -> None:
+    """Poll the API at ``url`` (``.../api``) until its health answers 200; raise
+    ``RuntimeError`` if the server ``proc`` exits or ``timeout_s`` passes. One client for every
+    poll: a client per poll (``httpx.get``) built a TLS context each time, about 0.1 s of CPU,
+    50 times per start, on the core the server starts on."""
     import httpx  # only when a server is started: keeps `hmflow --help` fast
 
-    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    deadline = time.monotonic() + timeout_s
     with httpx.Client(timeout=2) as client:
         while True:
             if proc.poll() is not None:
-                raise RuntimeError(f"the temporary Prefect server exited with code "
-                                   f"{proc.returncode} while starting (port {port})")
+                raise RuntimeError(f"the Prefect server at {url} exited with code "
+                                   f"{proc.returncode} while starting")
             try:
                 if client.get(f"{url}/health").status_code == 200:
                     return
             except httpx.HTTPError:
                 pass
             if time.monotonic() > deadline:
-                raise RuntimeError(f"the temporary Prefect server did not answer on {url} "
-                                   f"within {STARTUP_TIMEOUT_S:g} s")
+                raise RuntimeError(f"the Prefect server did not answer on {url} "
+                                   f"within {timeout_s:g} s")
             time.sleep(0.2)

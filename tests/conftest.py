@@ -18,12 +18,13 @@ import subprocess
 import sys
 import tempfile
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from prefect_processes import serve_prefect
+
+from hmflow.server import wait_until_healthy
 
 PUNQ_DIR = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
 PUNQ_DECK = PUNQ_DIR / "PUNQS3.DATA"
@@ -248,8 +249,6 @@ def prefect_api(tmp_path_factory) -> Iterator[str]:
     uvicorn with Prefect's app factory, on the session's PREFECT_HOME); stopped at the end of
     the session.
     """
-    import httpx
-
     logs = tmp_path_factory.mktemp("prefect-api")
     app_dir = Path(importlib.util.find_spec("prefect").origin).parent.parent
     with socket.socket() as s:
@@ -266,21 +265,11 @@ def prefect_api(tmp_path_factory) -> Iterator[str]:
              "--log-level", "error", "--lifespan", "on"],
             env=env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     try:
-        deadline = time.monotonic() + PREFECT_API_STARTUP_S
-        with httpx.Client(timeout=2) as client:  # one TLS context, not one per poll
-            while True:
-                if proc.poll() is not None:
-                    pytest.fail(f"the session's Prefect server exited with {proc.returncode}:\n"
-                                + (logs / "server.log").read_text(errors="replace")[-3000:])
-                try:
-                    if client.get(f"{url}/health").status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    pass
-                if time.monotonic() > deadline:
-                    pytest.fail(f"the session's Prefect server did not answer on {url} in "
-                                f"{PREFECT_API_STARTUP_S} s")
-                time.sleep(0.2)
+        try:
+            wait_until_healthy(proc, url, PREFECT_API_STARTUP_S)
+        except RuntimeError as e:
+            pytest.fail(f"the session's Prefect server: {e}\n"
+                        + (logs / "server.log").read_text(errors="replace")[-3000:])
         yield url
     finally:
         proc.terminate()
