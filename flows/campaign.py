@@ -16,8 +16,8 @@ from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from hmcore.calibration.calls import Job, PhysicsPrecheck
 from hmcore.calibration.loop import calibrate
-from hmcore.calibration.objective import Objective
 from hmcore.calibration.methods import make_proposer
+from hmcore.calibration.objective import Objective
 from hmcore.calibration.registry import (
     DEFAULT_AGENT,
     METHODS,
@@ -27,6 +27,7 @@ from hmcore.calibration.registry import (
 from hmcore.cases import load_case
 from hmcore.scoring.evaluation import SCORING_VERSION
 from storage import ArtifactStore, EvaluationJournal, validate_name
+from storage.lock import NameHeldError, NameKind, NameLock
 from tasks.case import deck_file_hashes, prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
 from tasks.noise import store_noise
@@ -180,60 +181,68 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
     campaign = campaign or default_campaign_name(loaded.name, agent, seed)
     reference = reference or reference_name(campaign)
     tag_flow_run("hmflow", f"case:{loaded.name}", f"agent:{agent}", f"seed:{seed}")
-    case_version = prepare_deck(loaded, case, storage, campaign)
-    try:  # a name bound to other settings (another case, method or version): one clear line
-        check_campaign_settings(storage, campaign, {
-            "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
-            "agent_settings": agent_settings or {}, "workers": workers,
-            "scoring_version": SCORING_VERSION, "method_version": method_version(agent),
-            "objective": loaded.misfit.objective,
-            "reference": reference, "deck_files": deck_file_hashes(loaded),
-            **({"forked_from": origin} if origin else {})})
-        check_campaign_settings(storage, reference, reference_settings(case_version))
-    except ValueError as exc:
+    lock = NameLock(storage, campaign, NameKind.CAMPAIGN)  # a deployment's run, too
+    try:
+        lock.acquire()
+    except NameHeldError as exc:
         return refused(exc)
-    journal = EvaluationJournal(ArtifactStore(storage), campaign)
-    done = {r["index"]: r for r in journal.rows()}
-    if done:
-        logger.info(f"resuming campaign {campaign}: {len(done)} calls already journaled")
-    proposer = make_proposer(agent, loaded.space.dim, seed, workers, budget,
-                             **(agent_settings or {}))
-    observations = observation_set(loaded)  # every record keeps its simulated rows
-    objective = Objective.of_case(loaded, observations)
-    final = [objective]  # the objective as the campaign ends (its noise refined)
+    try:
+        case_version = prepare_deck(loaded, case, storage, campaign)
+        try:  # a name bound to other settings (another case, method or version): one clear line
+            check_campaign_settings(storage, campaign, {
+                "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
+                "agent_settings": agent_settings or {}, "workers": workers,
+                "scoring_version": SCORING_VERSION, "method_version": method_version(agent),
+                "objective": loaded.misfit.objective,
+                "reference": reference, "deck_files": deck_file_hashes(loaded),
+                **({"forked_from": origin} if origin else {})})
+            check_campaign_settings(storage, reference, reference_settings(case_version))
+        except ValueError as exc:
+            return refused(exc)
+        journal = EvaluationJournal(ArtifactStore(storage), campaign)
+        done = {r["index"]: r for r in journal.rows()}
+        if done:
+            logger.info(f"resuming campaign {campaign}: {len(done)} calls already journaled")
+        proposer = make_proposer(agent, loaded.space.dim, seed, workers, budget,
+                                 **(agent_settings or {}))
+        observations = observation_set(loaded)  # every record keeps its simulated rows
+        objective = Objective.of_case(loaded, observations)
+        final = [objective]  # the objective as the campaign ends (its noise refined)
 
-    def refined(better: Objective) -> None:
-        final[0] = better
-        store_noise(storage, campaign, better, case_version.ref())
-        logger.info(f"campaign {campaign}: noise refinement {better.refinement} from the "
-                    f"residuals of call {better.refined_from + 1}")
+        def refined(better: Objective) -> None:
+            final[0] = better
+            store_noise(storage, campaign, better, case_version.ref())
+            logger.info(f"campaign {campaign}: noise refinement {better.refinement} from the "
+                        f"residuals of call {better.refined_from + 1}")
 
-    progress = Progress(campaign, budget)
-    progress.update([r for i, r in done.items() if i < budget])
+        progress = Progress(campaign, budget)
+        progress.update([r for i, r in done.items() if i < budget])
 
-    with make_runner(task_runner, workers, dask_address) as runner:
-        references = run_references(loaded, storage, reference, runner, observations)
+        with make_runner(task_runner, workers, dask_address) as runner:
+            references = run_references(loaded, storage, reference, runner, observations)
 
-        def evaluate_batch(jobs: list[Job]) -> list[dict]:
-            futures = [runner.submit(simulate, simulate_parameters(
-                loaded, job, storage, campaign, seed, agent, observations)) for job in jobs]
-            records = [f.result() for f in futures]
-            progress.update(records)
-            return records
+            def evaluate_batch(jobs: list[Job]) -> list[dict]:
+                futures = [runner.submit(simulate, simulate_parameters(
+                    loaded, job, storage, campaign, seed, agent, observations)) for job in jobs]
+                records = [f.result() for f in futures]
+                progress.update(records)
+                return records
 
-        calibrate(proposer, loaded.space, evaluate_batch, budget, workers, done,
-                  precheck=PhysicsPrecheck.of(loaded), objective=objective, on_refine=refined)
-    results = consolidate(storage, campaign, loaded.space.names, final[0], references)
-    best = archive_best(storage, campaign, results)
-    collect_curves(storage, campaign, reference)
-    rep = report(storage, campaign)
-    summary = rep.read_json("report.json")
-    best_doc = summary.get("best")
-    logger.info(f"campaign {campaign}: " + (
-        f"best by {summary.get('objective', 'E')} at call {best_doc['index'] + 1}: E "
-        f"{best_doc['E']:.6g}, likelihood {best_doc.get('likelihood') or float('nan'):.6g}"
-        if best_doc else "no valid call"))
-    return {"campaign": campaign, "storage": storage, "results": results.ref(),
-            "best": best.ref() if best else None, "report": rep.ref(),
-            "report_path": str(rep.file("report.md")),
-            "report_html": str(rep.file("report.html"))}
+            calibrate(proposer, loaded.space, evaluate_batch, budget, workers, done,
+                      precheck=PhysicsPrecheck.of(loaded), objective=objective, on_refine=refined)
+        results = consolidate(storage, campaign, loaded.space.names, final[0], references)
+        best = archive_best(storage, campaign, results)
+        collect_curves(storage, campaign, reference)
+        rep = report(storage, campaign)
+        summary = rep.read_json("report.json")
+        best_doc = summary.get("best")
+        logger.info(f"campaign {campaign}: " + (
+            f"best by {summary.get('objective', 'E')} at call {best_doc['index'] + 1}: E "
+            f"{best_doc['E']:.6g}, likelihood {best_doc.get('likelihood') or float('nan'):.6g}"
+            if best_doc else "no valid call"))
+        return {"campaign": campaign, "storage": storage, "results": results.ref(),
+                "best": best.ref() if best else None, "report": rep.ref(),
+                "report_path": str(rep.file("report.md")),
+                "report_html": str(rep.file("report.html"))}
+    finally:
+        lock.release()

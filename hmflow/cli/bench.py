@@ -23,7 +23,15 @@ from hmflow.cli.common import (
     option,
     refuse,
 )
-from hmflow.cli.flowrun import fit_workers, flow_refused, progress_columns, start_api
+from hmflow.cli.flowrun import (
+    fit_workers,
+    flow_refused,
+    hold_name,
+    is_storage_fault,
+    progress_columns,
+    start_api,
+    storage_fault,
+)
 from hmflow.console import Watch, bench_poll, prefect_environment
 
 
@@ -58,11 +66,12 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         fail(f"--methods: unknown {unknown or 'none given'}; choose from {list(METHODS)}")
     refuse([p for m in chosen for p in input_problems(m, budget, workers, spell=option)]
            + input_problems(task_runner=task_runner, spell=option))
+    storage = storage.resolve()
+    hold_name(storage, name or f"bench-{c.name}", "benchmark")  # (flows.bench.bench_names' rule)
     start_api()
     # Prefect: only after start_api (it reads its settings on import)
     from flows.bench import bench_flow, bench_names
 
-    storage = storage.resolve()
     console.print(f"benchmark on case {c.name}: {len(chosen)} methods x {seeds} seeds x {budget} "
                   f"calls, {workers} workers, storage {storage}")
     bench_name, _, campaigns = bench_names(c.name, chosen, list(range(seeds)), name)
@@ -73,6 +82,10 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
             result = bench_flow(case=str(case), methods=chosen, seeds=list(range(seeds)),
                                 budget=budget, workers=workers, storage=str(storage), name=name,
                                 task_runner=task_runner, dask_address=dask_address)
+    except OSError as exc:
+        if not is_storage_fault(exc):
+            raise
+        fail(storage_fault(exc, storage), soft_wrap=True)
     except (ValueError, flow_refused()) as exc:
         fail(str(exc))
     console.print(Path(result["summary_path"]).read_text(), highlight=False, soft_wrap=True)

@@ -29,7 +29,16 @@ from hmflow.cli.common import (
     print_tables,
     refuse,
 )
-from hmflow.cli.flowrun import check_inputs, fit_workers, flow_refused, progress_columns, start_api
+from hmflow.cli.flowrun import (
+    check_inputs,
+    fit_workers,
+    flow_refused,
+    hold_name,
+    is_storage_fault,
+    progress_columns,
+    start_api,
+    storage_fault,
+)
 from hmflow.console import Watch, campaign_poll, prefect_environment, status_text, summary_table
 
 CAMPAIGN_HELP = ("Campaign name; the same name resumes. Default: CASE-AGENT-vN-seedS (the "
@@ -68,16 +77,14 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     from storage import ArtifactStore, EvaluationJournal, refuse_links
 
     storage = folder("--storage", storage)
+    if campaign is not None:  # the name known: refused before the case is read
+        hold_name(storage.resolve(), fork or campaign, "campaign")
     c = load_case(case)  # clear errors before any simulator time or Prefect start-up
     refuse(scalar_problems(c))
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     check_inputs(agent, budget, workers, task_runner)
     if fork is not None:
         check_fork(fork, campaign, storage.resolve())
-    start_api()
-    # Prefect: only after start_api (it reads its settings on import)
-    from flows.campaign import campaign_flow
-
     name = campaign or default_campaign_name(c.name, agent, seed)
     storage = storage.resolve()
     forked_from = None
@@ -87,6 +94,11 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         refuse_links(storage, name)
     except ValueError as exc:
         fail(str(exc))
+    hold_name(storage, name, "campaign")  # (again: a no-op) before Prefect or any call
+    start_api()
+    # Prefect: only after start_api (it reads its settings on import)
+    from flows.campaign import campaign_flow
+
     console.print(f"campaign [bold]{name}[/]: case {c.name}, agent {agent}, budget {budget}, "
                   f"workers {workers}, seed {seed}"
                   + (f", forked from {forked_from}" if forked_from else ""), highlight=False)
@@ -106,6 +118,10 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         console.print(f"campaign [bold]{name}[/] stopped with {len(journal.indices())} calls "
                       "journaled; the same command resumes it")
         raise
+    except OSError as exc:
+        if not is_storage_fault(exc):
+            raise
+        fail(storage_fault(exc, storage), soft_wrap=True)
     except (ValueError, flow_refused()) as exc:
         fail(str(exc))
     print_report(storage, result["campaign"], result)

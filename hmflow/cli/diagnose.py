@@ -25,7 +25,15 @@ from hmflow.cli.common import (
     option,
     refuse,
 )
-from hmflow.cli.flowrun import dask_problems, flow_refused, progress_columns, start_api
+from hmflow.cli.flowrun import (
+    dask_problems,
+    flow_refused,
+    hold_name,
+    is_storage_fault,
+    progress_columns,
+    start_api,
+    storage_fault,
+)
 from hmflow.console import Watch, diagnosis_poll, prefect_environment
 
 
@@ -80,6 +88,7 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
     c = load_case(case)  # clear errors before any simulator time or Prefect start-up
     check_budget(c, budget, kind_list, calibrated is not None)
     storage = storage.resolve()
+    hold_name(storage, campaign or default_campaign_name(c.name), "diagnosis")
     # what flows.diagnose.diagnose_command does, with a progress display until the flow ends
     poll = diagnosis_poll(storage, campaign or default_campaign_name(c.name))
     try:
@@ -89,6 +98,10 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
                                    campaign=campaign, workers=workers, calibrated=calibrated,
                                    task_runner=task_runner, dask_address=dask_address,
                                    kinds=list(kind_list) if kind_list else None)
+    except OSError as exc:
+        if not is_storage_fault(exc):
+            raise
+        fail(storage_fault(exc, storage), soft_wrap=True)
     except (ValueError, flow_refused()) as exc:
         fail(str(exc))
     print_diagnosis(result, console)

@@ -27,7 +27,15 @@ from hmflow.cli.common import (
     print_forecast,
     refuse,
 )
-from hmflow.cli.flowrun import check_inputs, fit_workers, flow_refused, start_api
+from hmflow.cli.flowrun import (
+    check_inputs,
+    fit_workers,
+    flow_refused,
+    hold_name,
+    is_storage_fault,
+    start_api,
+    storage_fault,
+)
 from hmflow.console import Watch, prefect_environment
 
 
@@ -65,6 +73,7 @@ def ensemble(case: str = typer.Option(..., "--case", help="Case TOML file with k
         refuse_links(storage, name)
     except ValueError as exc:
         fail(str(exc))
+    hold_name(storage, name, "ensemble")
     spec = c.ensemble
     rounds = len(spec.alphas) + 1
     console.print(f"ensemble [bold]{name}[/]: case {c.name}, {spec.size} members, weights "
@@ -79,6 +88,10 @@ def ensemble(case: str = typer.Option(..., "--case", help="Case TOML file with k
             result = ensemble_flow(case=str(case), workers=workers, storage=str(storage),
                                    campaign=name, task_runner=task_runner,
                                    dask_address=dask_address)
+    except OSError as exc:
+        if not is_storage_fault(exc):
+            raise
+        fail(storage_fault(exc, storage), soft_wrap=True)
     except (ValueError, flow_refused()) as exc:
         fail(str(exc))
     print_forecast(storage, name)

@@ -1,15 +1,19 @@
 """Starting a Prefect flow from the terminal: the flow's input rules checked before Prefect
 starts (:func:`flows.inputs.input_problems`, spelled as options), the workers a machine can
-run, the command's Prefect API (a temporary server that dies with hmflow), what a flow that
-refused its input raises, and the progress bar's columns.
+run, the one process per name in the store (:func:`hold_name`), the command's Prefect API (a
+temporary server that dies with hmflow), what a flow that refused its input raises, and the
+progress bar's columns.
 """
 
 from __future__ import annotations
 
 import atexit
+import errno
 import os
+from pathlib import Path
 from typing import Optional
 
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     SpinnerColumn,
@@ -19,7 +23,7 @@ from rich.progress import (
 )
 
 from flows.inputs import input_problems
-from hmflow.cli.common import console, option, refuse
+from hmflow.cli.common import console, fail, option, refuse
 from hmflow.server import temporary_api
 
 
@@ -46,6 +50,60 @@ def fit_workers(workers: int, threads: int, task_runner: str) -> int:
                   f"need {workers * threads} cores, this machine has {cores}: {fitted} "
                   f"worker(s)")
     return fitted
+
+
+def hold_name(storage: Path, name: str, kind: str) -> None:
+    """Take the store's lock on ``name`` for this command (released when it ends): exit 2
+    with one line naming the holder when another live process holds it (or a process on
+    another host of a shared store); a lock left by a process of this host that died is taken
+    over, with a warning. Call it before Prefect starts and before anything is simulated."""
+    # storage imports pandas: keeps `hmflow --help` fast
+    from storage.lock import NameHeldError, NameLock
+
+    lock = NameLock(storage, name, kind)
+    try:
+        lock.acquire()
+    except NameHeldError as exc:
+        fail(str(exc), soft_wrap=True)
+    except OSError as exc:
+        fail(storage_fault(exc, storage), soft_wrap=True)
+    if lock.taken_over is not None:
+        console.print(f"[yellow]warning[/]: took over the lock of {escape(name)} from "
+                      f"{lock.taken_over.describe()}, which no longer runs", highlight=False,
+                      soft_wrap=True)
+    ctx = _command_context()
+    if ctx is not None:
+        ctx.call_on_close(lock.release)
+    else:
+        atexit.register(lock.release)
+
+
+STORAGE_ERRNOS = {errno.ENOSPC: "no space left", errno.EDQUOT: "disk quota exceeded",
+                  errno.EROFS: "read-only file system", errno.EACCES: "permission denied",
+                  errno.EPERM: "operation not permitted",
+                  errno.ENOENT: "a folder of the store was removed"}
+"""The file system faults a command reports as one line (:func:`storage_fault`)."""
+
+
+def is_storage_fault(exc: BaseException) -> bool:
+    """Whether ``exc`` is a file system fault of the store (:data:`STORAGE_ERRNOS`)."""
+    return isinstance(exc, OSError) and exc.errno in STORAGE_ERRNOS
+
+
+def storage_fault(exc: OSError, storage: Path) -> str:
+    """One line for a file system fault while writing the store: what, the path, the fix. The
+    journal's records and the store's versions are written atomically, so what was finished is
+    kept and the same command resumes."""
+    path = exc.filename or storage
+    what = STORAGE_ERRNOS.get(exc.errno, exc.strerror or str(exc))
+    fixes = {errno.ENOSPC: "free space", errno.EDQUOT: "free space (or raise the quota)",
+             errno.EROFS: "make the store writable (or give --storage on a writable disk)",
+             errno.EACCES: "make the store writable for this user (or give another --storage)",
+             errno.EPERM: "make the store writable for this user (or give another --storage)",
+             errno.ENOENT: f"check that {storage} is there (restore or recreate it)"}
+    fix = fixes.get(exc.errno, "repair the store")
+    return (f"storage fault: {what} at {path}: {fix} and run the same command again: it "
+            f"resumes (finished calls are kept)")
 
 
 def start_api() -> None:
