@@ -88,6 +88,14 @@ def _prefect_console_handlers() -> list[logging.Handler]:
     return found
 
 
+def quiet_prefect_lines(line_filter: logging.Filter) -> None:
+    """Add ``line_filter`` to Prefect's console handlers (the terminal only: the records still
+    reach the Prefect server); call it once Prefect is imported."""
+    for h in _prefect_console_handlers():
+        if line_filter not in h.filters:
+            h.addFilter(line_filter)
+
+
 def _set_console_handler_level(level: int) -> None:
     for h in _prefect_console_handlers():
         h.setLevel(level)

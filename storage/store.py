@@ -342,8 +342,12 @@ class ArtifactStore:
                                  f"settings ({path}); choose another campaign name")
             return path
         tmp = directory / f".{SETTINGS}.{uuid.uuid4().hex}.tmp"
-        _write_json(tmp, data)
-        os.replace(tmp, path)
+        try:
+            _write_json(tmp, data)
+            os.replace(tmp, path)
+        except BaseException:  # a full disk: no half-written file left behind
+            tmp.unlink(missing_ok=True)
+            raise
         return path
 
     def work_dir(self, campaign: str, folder: str) -> Path:

@@ -29,6 +29,7 @@ from hmcore.scoring.evaluation import Evaluation, evaluate, simulator_for
 from hmcore.scoring.observations import ObservationSet
 from hmcore.simulation.simulator import Simulator
 from storage import RUNS, ArtifactStore, EvaluationJournal, to_jsonable
+from storage.space import full_disk, require_store
 from tasks.naming import simulate_run_name
 
 VALUES_RTOL = 1e-9
@@ -154,14 +155,17 @@ def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, ag
     refines the noise (:mod:`hmcore.calibration.objective`); with ``destination.responses``, ``responses``, the simulated
     table (:func:`responses_record`). A call already journaled (its worker died after writing
     the record, and the cluster reran it) returns the journaled record: never simulated or
-    recorded twice."""
-    store = ArtifactStore(store_root)
+    recorded twice. A store whose folder is gone, or a failed call on a full disk, raises
+    ``OSError`` (:mod:`storage.space`): the call is not journaled and runs again on resume."""
+    store = ArtifactStore(require_store(store_root))  # removed mid-run: a fault, not a call
     journal = EvaluationJournal(store, campaign, destination.journal)
     journaled = journal.get(job.index)
     if journaled is not None:  # a rerun of a call whose worker died after journaling it
         return journaled
     run_dir = destination.run_dir(store, campaign, job)
     ev, attempt = evaluate_or_raise_transient(case, job.values, run_dir, simulator)
+    if ev.failure is not None and (fault := full_disk(store_root)) is not None:
+        raise fault  # the disk failed, not the model: not journaled, run again on resume
     extra = {}
     if observations is not None and ev.responses is not None:
         extra["simulated"] = observations.simulated(ev.responses).tolist()

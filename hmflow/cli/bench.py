@@ -29,6 +29,7 @@ from hmflow.cli.flowrun import (
     hold_name,
     is_storage_fault,
     progress_columns,
+    quiet_storage_faults,
     start_api,
     storage_fault,
 )
@@ -74,6 +75,7 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
 
     console.print(f"benchmark on case {c.name}: {len(chosen)} methods x {seeds} seeds x {budget} "
                   f"calls, {workers} workers, storage {storage}")
+    quiet_storage_faults(storage)  # said in one line below, not as a traceback
     bench_name, _, campaigns = bench_names(c.name, chosen, list(range(seeds)), name)
     try:
         with Watch(console, bench_poll(storage, campaigns, budget, workers, bench_name),
@@ -83,7 +85,7 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                                 budget=budget, workers=workers, storage=str(storage), name=name,
                                 task_runner=task_runner, dask_address=dask_address)
     except OSError as exc:
-        if not is_storage_fault(exc):
+        if not is_storage_fault(exc, storage):
             raise
         fail(storage_fault(exc, storage), soft_wrap=True)
     except (ValueError, flow_refused()) as exc:

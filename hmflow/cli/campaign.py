@@ -36,6 +36,7 @@ from hmflow.cli.flowrun import (
     hold_name,
     is_storage_fault,
     progress_columns,
+    quiet_storage_faults,
     start_api,
     storage_fault,
 )
@@ -103,6 +104,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                   f"workers {workers}, seed {seed}"
                   + (f", forked from {forked_from}" if forked_from else ""), highlight=False)
     console.print(f"storage: {escape(str(storage))}", soft_wrap=True, highlight=False)  # never broken
+    quiet_storage_faults(storage)  # said in one line below, not as a traceback
     journal = EvaluationJournal(ArtifactStore(storage), name)
     try:
         done = len(journal.indices())
@@ -119,7 +121,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                       "journaled; the same command resumes it")
         raise
     except OSError as exc:
-        if not is_storage_fault(exc):
+        if not is_storage_fault(exc, storage):
             raise
         fail(storage_fault(exc, storage), soft_wrap=True)
     except (ValueError, flow_refused()) as exc:

@@ -31,6 +31,7 @@ from hmflow.cli.flowrun import (
     hold_name,
     is_storage_fault,
     progress_columns,
+    quiet_storage_faults,
     start_api,
     storage_fault,
 )
@@ -89,6 +90,7 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
     check_budget(c, budget, kind_list, calibrated is not None)
     storage = storage.resolve()
     hold_name(storage, campaign or default_campaign_name(c.name), "diagnosis")
+    quiet_storage_faults(storage)  # said in one line below, not as a traceback
     # what flows.diagnose.diagnose_command does, with a progress display until the flow ends
     poll = diagnosis_poll(storage, campaign or default_campaign_name(c.name))
     try:
@@ -99,7 +101,7 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
                                    task_runner=task_runner, dask_address=dask_address,
                                    kinds=list(kind_list) if kind_list else None)
     except OSError as exc:
-        if not is_storage_fault(exc):
+        if not is_storage_fault(exc, storage):
             raise
         fail(storage_fault(exc, storage), soft_wrap=True)
     except (ValueError, flow_refused()) as exc:

@@ -33,6 +33,7 @@ from hmflow.cli.flowrun import (
     flow_refused,
     hold_name,
     is_storage_fault,
+    quiet_storage_faults,
     start_api,
     storage_fault,
 )
@@ -74,6 +75,7 @@ def ensemble(case: str = typer.Option(..., "--case", help="Case TOML file with k
     except ValueError as exc:
         fail(str(exc))
     hold_name(storage, name, "ensemble")
+    quiet_storage_faults(storage)  # said in one line below, not as a traceback
     spec = c.ensemble
     rounds = len(spec.alphas) + 1
     console.print(f"ensemble [bold]{name}[/]: case {c.name}, {spec.size} members, weights "
@@ -89,7 +91,7 @@ def ensemble(case: str = typer.Option(..., "--case", help="Case TOML file with k
                                    campaign=name, task_runner=task_runner,
                                    dask_address=dask_address)
     except OSError as exc:
-        if not is_storage_fault(exc):
+        if not is_storage_fault(exc, storage):
             raise
         fail(storage_fault(exc, storage), soft_wrap=True)
     except (ValueError, flow_refused()) as exc:

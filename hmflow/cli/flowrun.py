@@ -8,8 +8,9 @@ progress bar's columns.
 from __future__ import annotations
 
 import atexit
-import errno
+import logging
 import os
+import re
 from pathlib import Path
 from typing import Optional
 
@@ -24,6 +25,7 @@ from rich.progress import (
 
 from flows.inputs import input_problems
 from hmflow.cli.common import console, fail, option, refuse
+from hmflow.console import quiet_prefect_lines
 from hmflow.server import temporary_api
 
 
@@ -66,6 +68,8 @@ def hold_name(storage: Path, name: str, kind: str) -> None:
     except NameHeldError as exc:
         fail(str(exc), soft_wrap=True)
     except OSError as exc:
+        if not is_storage_fault(exc, storage):
+            raise
         fail(storage_fault(exc, storage), soft_wrap=True)
     if lock.taken_over is not None:
         console.print(f"[yellow]warning[/]: took over the lock of {escape(name)} from "
@@ -78,32 +82,65 @@ def hold_name(storage: Path, name: str, kind: str) -> None:
         atexit.register(lock.release)
 
 
-STORAGE_ERRNOS = {errno.ENOSPC: "no space left", errno.EDQUOT: "disk quota exceeded",
-                  errno.EROFS: "read-only file system", errno.EACCES: "permission denied",
-                  errno.EPERM: "operation not permitted",
-                  errno.ENOENT: "a folder of the store was removed"}
-"""The file system faults a command reports as one line (:func:`storage_fault`)."""
+def is_storage_fault(exc: BaseException, storage: Path) -> bool:
+    """Whether ``exc`` is the store's file system failing (:func:`storage.space.is_fault`)."""
+    # storage imports pandas: keeps `hmflow --help` fast
+    from storage.space import is_fault
 
-
-def is_storage_fault(exc: BaseException) -> bool:
-    """Whether ``exc`` is a file system fault of the store (:data:`STORAGE_ERRNOS`)."""
-    return isinstance(exc, OSError) and exc.errno in STORAGE_ERRNOS
+    return is_fault(exc, storage)
 
 
 def storage_fault(exc: OSError, storage: Path) -> str:
-    """One line for a file system fault while writing the store: what, the path, the fix. The
-    journal's records and the store's versions are written atomically, so what was finished is
-    kept and the same command resumes."""
-    path = exc.filename or storage
-    what = STORAGE_ERRNOS.get(exc.errno, exc.strerror or str(exc))
-    fixes = {errno.ENOSPC: "free space", errno.EDQUOT: "free space (or raise the quota)",
-             errno.EROFS: "make the store writable (or give --storage on a writable disk)",
-             errno.EACCES: "make the store writable for this user (or give another --storage)",
-             errno.EPERM: "make the store writable for this user (or give another --storage)",
-             errno.ENOENT: f"check that {storage} is there (restore or recreate it)"}
-    fix = fixes.get(exc.errno, "repair the store")
-    return (f"storage fault: {what} at {path}: {fix} and run the same command again: it "
-            f"resumes (finished calls are kept)")
+    """One line for a file system fault of the store: what, the path, the fix. The journal's
+    records and the store's versions are written atomically and a call the fault made fail is
+    not journaled, so what was finished is kept and the same command resumes."""
+    from storage.space import FAULTS  # pandas, as above
+
+    fault = FAULTS.get(exc.errno)
+    what = fault.what if fault else (exc.strerror or str(exc))
+    fix = fault.fix if fault else "repair the store"
+    return (f"storage fault: {what} at {exc.filename or storage}: {fix} and run the same "
+            "command again: it resumes (finished calls are kept)")
+
+
+def quiet_storage_faults(storage: Path) -> None:
+    """Keep Prefect's terminal lines about a storage fault (the failed task, the flow's
+    traceback) out of the terminal: the command says it in one line
+    (:func:`storage_fault`). Call it once Prefect is imported; the lines still reach the
+    Prefect server (the UI)."""
+    quiet_prefect_lines(StorageFaultFilter(storage))
+
+
+FAULT_TEXT = re.compile(r"\b(?:OSError|PermissionError|FileNotFoundError)(?::\s*\[Errno |\()(\d+)")
+"""An ``OSError`` as Prefect spells it in a line (``OSError: [Errno 28] ...``,
+``OSError(28, ...)``), with its errno."""
+
+
+class StorageFaultFilter(logging.Filter):
+    """Drops a log record about a storage fault of the store at ``storage``: one carrying the
+    exception, or one whose text names such an ``OSError``."""
+
+    def __init__(self, storage: Path):
+        super().__init__()
+        # storage imports pandas: keeps `hmflow --help` fast
+        from storage.space import FAULTS, is_fault
+
+        self.storage = Path(storage)
+        self.anywhere = {n for n, f in FAULTS.items() if f.anywhere}
+        self.inside = set(FAULTS) - self.anywhere
+        self.is_fault = is_fault
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        if exc is not None and self.is_fault(exc, self.storage):
+            return False
+        text = record.getMessage()
+        found = FAULT_TEXT.search(text)
+        if found is None:
+            return True
+        number = int(found.group(1))
+        return not (number in self.anywhere
+                    or (number in self.inside and str(self.storage) in text))
 
 
 def start_api() -> None:
