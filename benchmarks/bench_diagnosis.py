@@ -214,6 +214,22 @@ def _found(r: dict) -> str:
     return "no"
 
 
+def _outcome(r: dict) -> str:
+    """The answer by the evidence (:func:`hmcore.scenarios.judge.answer_outcome`): right,
+    honest or wrong, with its set size; '-' for a row judged before it was recorded."""
+    return f"{r['outcome']} ({r.get('set_size', 1)})" if r.get("outcome") else "-"
+
+
+def _outcomes(rows: list[dict]) -> str:
+    """Right / honest / wrong counts of ``rows`` and their mean set size."""
+    got = [r for r in rows if r.get("outcome")]
+    if not got:
+        return "-"
+    count = {k: sum(r["outcome"] == k for r in got) for k in ("right", "honest", "wrong")}
+    size = sum(r.get("set_size", 1) for r in got) / len(got)
+    return f"{count['right']} / {count['honest']} / {count['wrong']} ({size:.1f})"
+
+
 def table(rows: list[dict]) -> str:
     """The markdown table of sweep rows: one line per case, then one per (case, kind); in the
     order case, kind (controls, then the generators in their order, then library kinds), seed."""
@@ -223,8 +239,9 @@ def table(rows: list[dict]) -> str:
     rows = sorted(rows, key=lambda r: (r["case"] != "synthetic", r["case"],
                                        order.get(r["kind"], len(order)), r["kind"], r["seed"]))
     lines = ["| case | kind | seed | hidden (value) | signal chi2 fit / after globals | "
-             "answer (window) | accepted: held-back E before -> after | found | sims | min |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "answer (window) | accepted: held-back E before -> after | found | by the evidence "
+             "(set size) | sims | min |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         hidden = ", ".join(f"{k} ({v:.3g})" for k, v in (r.get("hidden_values") or {}).items())
         gains = "; ".join(f"{a['id']}: {_fmt(a['heldout_before'], '.4f')} -> "
@@ -240,17 +257,19 @@ def table(rows: list[dict]) -> str:
             f"| {r['case']} | {r['kind']} | {r['seed']} | {hidden or '-'} | "
             f"{_fmt(r.get('signal_fit'), '.0f')} / {_fmt(r.get('signal_fit_after_globals'), '.0f')}"
             f" | {answer}; top score {first} ({win}) | {gains} | "
-            f"{_found(r)} | {r.get('simulations', '-')} | "
+            f"{_found(r)} | {_outcome(r)} | {r.get('simulations', '-')} | "
             f"{_fmt((r.get('wall_s') or 0) / 60, '.1f')} |")
     lines += ["", "| case | kind | cases | visible | found (of the visible) | right answers "
-                  "(none on an invisible one counts) | mean simulations |",
-              "|---|---|---|---|---|---|---|"]
+                  "(none on an invisible one counts) | by the evidence, of the visible: right / "
+                  "honest / wrong (mean set size) | mean simulations |",
+              "|---|---|---|---|---|---|---|---|"]
     for key in dict.fromkeys((r["case"], r["kind"]) for r in rows):
         sub = [r for r in rows if (r["case"], r["kind"]) == key]
         n, seen = len(sub), [r for r in sub if r.get("visible") is not False]
         right = sum(_found(r) in ("yes", "invisible: none (right)") for r in sub)
         lines.append(f"| {key[0]} | {key[1]} | {n} | {len(seen)}/{n} | "
                      f"{sum(bool(r.get('found')) for r in seen)}/{len(seen)} | {right}/{n} | "
+                     f"{_outcomes(seen)} | "
                      f"{sum(r.get('simulations', 0) for r in sub) / n:.0f} |")
     return "\n".join(lines) + "\n"
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from hmcore.diagnosis.evidence import jtj_eigenvalues
 from hmcore.diagnosis.extensions import Candidate, open_end
 from hmcore.diagnosis.recalibrate import LevenbergMarquardt
 from hmcore.diagnosis.runs import Run, heldout_per_well, run_scores
@@ -117,6 +118,7 @@ def record(ctx: Context, cal: Calibrated, c: Candidate, lm: LevenbergMarquardt,
     ho_ok, quiet = heldout_confirms(base_sc["ssr_heldout"], sc["ssr_heldout"], e_ho_b, e_ho_a,
                                     cal.obs.n_noise("heldout"), s)
     value = run.values.get(c.name, c.neutral)
+    eig = jtj_eigenvalues(lm.J)  # the fit's curvature: its Occam factor (evidence)
     out = {
         "start_value": start.values.get(c.name, c.neutral),
         "line_search": line_search,
@@ -132,6 +134,7 @@ def record(ctx: Context, cal: Calibrated, c: Candidate, lm: LevenbergMarquardt,
         "fit_line": line, "fit_beyond_noise": bool(fit_ok),
         "heldout_beyond_noise": bool(ho_ok), "open_end": open_end(c, value, s.open_end),
         "heldout_within_noise_before": bool(quiet),
+        "jtj_eigenvalues": None if eig is None else [float(x) for x in eig],
         "per_well_response_after": sc["per_well_response"],
         "per_well_response_heldout_after": heldout_per_well(ctx.case, run.responses),
         "history": history}

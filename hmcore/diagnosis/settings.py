@@ -99,6 +99,11 @@ class DiagnosisSettings:
     finding beyond it makes the answer ``unexplained``, localised, instead of ``none``; its |z|
     must exceed ``norm.isf(alpha / (2 m))`` over the m bias and trend tests made
     (:func:`hmcore.diagnosis.decision.localise`)."""
+    evidence_mass: float = 0.9
+    """Weight (fraction) the answer's explanations must carry together
+    (:mod:`hmcore.diagnosis.evidence`): one cause when its own weight reaches it (a Bayes
+    factor of at least 9 over the next), else the smallest set, best first, that does - the
+    explanations the data cannot separate."""
     max_causes: int = 2
     """Causes accepted at most (1 or 2), by greedy forward selection: when round 1 accepts a
     cause - or finds one that fits the fitted history beyond noise but that the held-back
@@ -241,6 +246,9 @@ class DiagnosisSettings:
             problems.append(Problem("region_shifts", f"must be at least 0, got "
                                     f"{self.region_shifts}", "give 0 (never) or a number of "
                                     "wells, such as 2"))
+        if not 0.5 <= self.evidence_mass < 1.0:
+            problems.append(Problem("evidence_mass", f"must be in [0.5, 1), got "
+                                    f"{self.evidence_mass}", "give a weight such as 0.9"))
         if self.workers < 1:
             problems.append(Problem("workers", f"must be at least 1, got {self.workers}",
                                     "give a positive number of simulations at once"))

@@ -16,7 +16,9 @@ that returns its own:
    each judged by the fit line and the held-back rule (:mod:`hmcore.diagnosis.recalibration`,
    :mod:`hmcore.diagnosis.restart`, :mod:`hmcore.diagnosis.confirmation`);
 6. decide      - the ranked causes, the selected extension, the verdict: the round's document
-   (:mod:`hmcore.diagnosis.decision`, :func:`document`);
+   (:mod:`hmcore.diagnosis.decision`, :func:`document`), and the answer: every explanation
+   weighed by its evidence, one cause or the set the data cannot separate with what would
+   separate it (:mod:`hmcore.diagnosis.answer`);
 7. report      - ``diagnosis.json``, ``report.md`` and residual plots
    (:mod:`hmcore.diagnosis.report`).
 
@@ -37,7 +39,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from hmcore.diagnosis import calibration, decision, ranking, recalibration
+from hmcore.diagnosis import answer, calibration, decision, ranking, recalibration
 from hmcore.diagnosis.budget import budget_problem, count_tests, minimum_runs
 from hmcore.diagnosis.extensions import Candidate
 from hmcore.diagnosis.recalibrate import Coordinates
@@ -317,4 +319,4 @@ def document(ctx: Context, state: Round) -> dict:
         doc["verdict"] += (
             f" ({d.selected} removes only {100 * share:.0f} % of the fitted misfit beyond "
             "noise: something else acts too)")
-    return doc
+    return answer.attach(doc, ctx, state)

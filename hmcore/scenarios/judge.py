@@ -1,14 +1,31 @@
 """Judging a diagnosis against the hidden truth: was the effect visible in the fitted history,
 does an answer's cause name it (the same kind and well, layer, plane or box; a dated cause
-within :data:`~hmcore.scenarios.generators.START_TOLERANCE_DAYS` of the start), right or wrong.
+within :data:`~hmcore.scenarios.generators.START_TOLERANCE_DAYS` of the start), right or wrong;
+and the answer's :class:`Outcome` by the evidence (:func:`answer_outcome`): right when the
+truth carries the dominant weight, honest when it is in the reported set of explanations the
+data cannot separate, wrong otherwise.
 """
 
 from __future__ import annotations
 
+from enum import Enum
+
 from hmcore.diagnosis.decision import heldout_decisive_drop
+from hmcore.scoring.record_format import upgrade_diagnosis
 from hmcore.diagnosis.settings import DiagnosisSettings
 from hmcore.scenarios.effects import HiddenEffect
 from hmcore.scenarios.generators import START_TOLERANCE_DAYS
+
+
+class Outcome(str, Enum):
+    """An answer judged by what it says (:func:`answer_outcome`)."""
+
+    RIGHT = "right"
+    """One explanation dominates, and it names the truth."""
+    HONEST = "honest"
+    """A set the data cannot separate, the truth in it."""
+    WRONG = "wrong"
+    """A single confident cause that is not the truth, or a set without it."""
 
 
 # ----------------------------------------------------------------------------- scoring a finding
@@ -122,10 +139,11 @@ def judge_effects(doc: dict, effects: list[HiddenEffect], signal: dict | None = 
             g["ssr_heldout_after"] < g["ssr_heldout_before"]
     need_held = any(e.kind != "unexplained" for e in effects)
     top = [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:4] if c["chi2"] is not None]
-    return {"hidden": [e.candidate.id for e in effects], "named": named,
+    found = bool(all(named.values()) and (held or not need_held))
+    return {**answer_outcome(doc, effects, signal, found),
+            "hidden": [e.candidate.id for e in effects], "named": named,
             "accepted": [a["id"] for a in accepted], "heldout_improved": bool(held),
-            "found": bool(all(named.values()) and (held or not need_held)),
-            "ranking": top, "verdict": doc["verdict"],
+            "found": found, "ranking": top, "verdict": doc["verdict"],
             "gain": {k: g[k] for k in ("fit_before", "fit_after", "heldout_before",
                                        "heldout_after")}}
 
@@ -150,7 +168,7 @@ def judge(doc: dict, effect: HiddenEffect | None, signal: dict | None = None) ->
     g = doc["gain"]
     if effect is None:
         ok = first["kind"] == "none" and doc["selected"] is None
-        return {"hidden": None, "ranked_first": ok, "selected": ok, "heldout_improved": ok,
+        return {**answer_outcome(doc, [], signal, ok), "hidden": None, "ranked_first": ok, "selected": ok, "heldout_improved": ok,
                 "found": ok, "ranking": top, "verdict": doc["verdict"]}
     h = effect.candidate
     same = names(first, effect)
@@ -164,9 +182,45 @@ def judge(doc: dict, effect: HiddenEffect | None, signal: dict | None = None) ->
                      and truth_e >= g["heldout_before"])
     held = held_e or (e_cannot_tell and g.get("ssr_heldout_after") is not None
                       and g["ssr_heldout_after"] < g["ssr_heldout_before"])
-    return {"hidden": h.id, "value": effect.value, "ranked_first": bool(same),
+    return {**answer_outcome(doc, [effect], signal, bool(same and sel and held)),
+            "hidden": h.id, "value": effect.value, "ranked_first": bool(same),
             "selected": bool(sel), "heldout_improved": bool(held),
             "heldout_E_improved": bool(held_e), "truth_E_heldout": truth_e,
             "found": bool(same and sel and held), "ranking": top, "verdict": doc["verdict"],
             "gain": {k: g[k] for k in ("fit_before", "fit_after", "heldout_before",
                                        "heldout_after")}}
+
+
+# ----------------------------------------------------------------------------- the answer
+def _member(cid: str, doc: dict) -> dict:
+    """The cause of an answer's member: the document's ranked cause of that id, or for
+    ``none`` and ``unexplained`` (not always ranked) a bare one."""
+    ranked = next((c for c in doc.get("causes") or [] if c.get("id") == cid), None)
+    return ranked or {"id": cid, "kind": cid, "wells": [], "layers": [], "machine": None}
+
+
+def answer_outcome(doc: dict, effects: list[HiddenEffect], signal: dict | None = None,
+                   found: bool | None = None) -> dict:
+    """The :class:`Outcome` of ``doc``'s answer (``doc["answer"]``: its members, one or the
+    set) for the hidden ``effects`` (none: the control, whose truth is ``none``; an effect of
+    no family: ``unexplained``, or ``none`` too when the data hardly show it). One library or
+    generated effect is named as :func:`names` says; several effects (no pair is weighed
+    yet) and a document from before the answer was weighed (``derived``, see
+    :func:`hmcore.scoring.record_format.upgrade_diagnosis`) take ``found``: right or wrong.
+    Returns ``outcome``, ``set_size`` and ``members``."""
+    a = upgrade_diagnosis(doc)["answer"]
+    members = list(a.get("members") or [])
+    size = len(members)
+    if a.get("derived") or len(effects) > 1:
+        out = Outcome.RIGHT if found else Outcome.WRONG
+        return {"outcome": out.value, "set_size": max(size, 1), "members": members}
+    if not effects:
+        hit = ["none" == _member(m, doc)["kind"] for m in members]
+    elif effects[0].kind == "unexplained":
+        ok = ("unexplained", "none") if not visible(signal) else ("unexplained",)
+        hit = [_member(m, doc)["kind"] in ok for m in members]
+    else:
+        hit = [names(described(_member(m, doc), doc), effects[0]) for m in members]
+    out = (Outcome.RIGHT if size == 1 and hit[0] else
+           Outcome.HONEST if size > 1 and any(hit) else Outcome.WRONG)
+    return {"outcome": out.value, "set_size": size, "members": members}

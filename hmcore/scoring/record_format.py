@@ -4,6 +4,12 @@ reports.
 
 * ``failure``: records journaled before failure kinds were stored carry the kind as the first
   word of their ``reason``.
+
+And of a stored diagnosis document (``diagnosis.json``):
+
+* ``answer``: diagnoses made before the explanations were weighed by their evidence (issue 46)
+  name one cause, their first: :func:`upgrade_diagnosis` derives that answer, marked
+  ``derived`` (no weights), so that ``reveal`` and the sweep judge them as they were judged.
 """
 
 from __future__ import annotations
@@ -31,3 +37,15 @@ def upgrade(record: dict) -> dict:
         kind = failure_of(out)
         out["failure"] = kind.value if kind is not None else None
     return out
+
+
+def upgrade_diagnosis(doc: dict) -> dict:
+    """A diagnosis document in today's format (a new dict when changed; the stored file is
+    never rewritten): an older one gets the ``answer`` it gave - its first cause, alone,
+    ``derived`` (no weights, no separations)."""
+    if doc.get("answer"):
+        return doc
+    first = (doc.get("causes") or [{}])[0].get("id")
+    return {**doc, "answer": {"kind": "single", "members": [first] if first else [],
+                              "derived": True, "explanations": [], "separations": [],
+                              "text": ""}}
