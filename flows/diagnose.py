@@ -164,7 +164,7 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
         versions[step] = v
         return v
 
-    with make_runner(task_runner, workers, dask_address) as runner:
+    with make_runner(task_runner, workers, dask_address, loaded.cluster) as runner:
         runs = JournaledRuns(storage, campaign, journal, runner)
         if runs.journaled:
             logger.info(f"resuming the diagnosis {campaign}: {runs.journaled} runs already "
@@ -184,7 +184,7 @@ def diagnose_flow(case: str = "synthetic", storage: str = DEFAULT_STORAGE,
     logger.info(f"diagnosis of {loaded.name}: {doc['verdict']}")
     return {"campaign": campaign, "storage": storage, "causes": doc["causes"],
             "selected": sel, "verdict": doc["verdict"], "gain": doc["gain"],
-            "accepted": doc.get("accepted", []),
+            "accepted": doc.get("accepted", []), "answer": doc.get("answer"),
             "diagnosis_path": str(path), "report_path": str(rep.file("report.md")),
             "campaign_report_path": str(whole.file("report.md")),
             "artifacts": {k: v.ref() for k, v in versions.items()},
@@ -241,6 +241,19 @@ def print_diagnosis(result: dict, console=None, most: int = 8) -> None:
                       f"{num(g['fit_after'])}, held-back E {num(g['heldout_before'])} -> "
                       f"{num(g['heldout_after'])})")
     console.print(result["verdict"], highlight=False)
+    a = result.get("answer")
+    if a and a.get("explanations"):  # the answer by the evidence (issue 46)
+        at = Table(title="By the evidence: " + ("one cause dominates" if a["kind"] == "single"
+                                                else "the data cannot separate these"))
+        for col in ("explanation", "weight", "log evidence", "fitted SSR", "held-back SSR"):
+            at.add_column(col, justify="left" if col == "explanation" else "right")
+        for x in a["explanations"][:most]:
+            at.add_row(x["id"] + (" *" if x["id"] in a["members"] else ""),
+                       f"{x['weight']:.3f}", f"{x['log_evidence']:.1f}", num(x["ssr_fit"], 6),
+                       num(x["ssr_heldout"], 6))
+        console.print(at)
+        for sep in a.get("separations") or []:
+            console.print(f"to separate them: {sep['sentence']}", highlight=False)
     g = result["gain"]
     gt = Table(title="Gain (misfit E)")
     for col in ("history", "before", "after"):

@@ -859,6 +859,13 @@ def test_cli_printing_of_a_diagnosis(tmp_path):
     assert "Ranked causes" in text and "well_skin" in text and "PROD3" in text
     assert "selected: well_skin (well_skin:PROD3)" in text
     assert "fitted" in text and "held back" in text and "diagnosis.json" in text
+    # the answer by the evidence: the skin carries the weight alone, in the terminal and the
+    # report (issue 46)
+    assert doc["answer"]["members"] == ["well_skin:PROD3"], doc["answer"]["text"]
+    assert "By the evidence: one cause dominates" in text and "well_skin:PROD3 *" in text
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "## The answer, by the evidence" in report and "The data support well_skin:PROD3" \
+        in report
 
 
 def test_the_campaign_report_carries_the_diagnosis_and_from_campaign_keeps_to_its_case(tmp_path,

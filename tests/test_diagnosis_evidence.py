@@ -178,8 +178,8 @@ def test_the_sentence_and_the_grid():
     text = s.sentence(history_end=2500)
     assert text.startswith("a water-cut measurement at PRO-11 after day 3000 separates krw "
                            "from contact by 4.0 sigma")
-    assert "within" not in text
-    assert "within" in s.sentence(history_end=3500)
+    assert "inside" not in text
+    assert "inside the fitted history" in s.sentence(history_end=3500)
     # a series with no sigma is left out
     assert tabulate(frames, {})[1] == []
 
@@ -257,3 +257,48 @@ def test_a_diagnosis_stored_before_the_evidence_is_judged_as_it_was(synthetic_ca
     assert not j["found"] and j["outcome"] == "wrong" and j["set_size"] == 1
     found = {**old, "selected": {"id": skin.id}, "gain": {**old["gain"], "heldout_after": 0.01}}
     assert judge(found, HiddenEffect(skin, 12.0))["outcome"] == "right"
+
+
+# ----------------------------------------------------------------------------- the answer
+def _run(wct_end):
+    """A run whose water cut at PRO-11 rises linearly to ``wct_end`` at day 4000."""
+    from types import SimpleNamespace
+
+    from hmcore.diagnosis.runs import Run
+
+    days = np.arange(0.0, 4001.0, 500.0)
+    frame = pd.DataFrame({"well": "PRO-11", "quantity": "WWCT", "days": days,
+                          "value": wct_end * days / days[-1]})
+    return Run({}, SimpleNamespace(responses=frame), np.zeros(3), np.zeros(2))
+
+
+def test_an_ambiguous_answer_names_the_measurement_that_separates_it():
+    """Two explanations that fit alike (same SSRs and curvature) form a set; the answer says
+    which measurement separates them, from their runs; a third far worse one is left out."""
+    from types import SimpleNamespace
+
+    from hmcore.diagnosis.answer import section, with_pair
+
+    obs = SimpleNamespace(rows=pd.DataFrame({"well": ["PRO-11"] * 3, "quantity": "WWCT",
+                                             "sigma": [0.05, 0.05, np.nan]}),
+                          history_end_days=2000.0)
+    fits = [fit("contact", 300, [400.0] * 6), fit("krw", 300.5, [400.0] * 6),
+            fit("none", 360, [400.0] * 5)]
+    runs = {"contact": _run(0.8), "krw": _run(0.4), "none": _run(0.3)}
+    a = section(fits, 300, runs, obs)
+    assert a["kind"] == "set" and a["members"] == ["contact", "krw"]
+    (sep,) = a["separations"]
+    assert (sep["well"], sep["quantity"], sep["day"]) == ("PRO-11", "WWCT", 4000.0)
+    assert sep["z"] == pytest.approx(0.4 / 0.05)
+    assert sep["from_day"] == 1000.0  # the difference 0.4 * day / 4000 reaches 2 sigma (0.1)
+    assert "cannot separate contact" in a["text"] and "water-cut measurement at PRO-11" \
+        in a["text"] and "8.0 sigma" in a["text"]
+    w = {x["id"]: x["weight"] for x in a["explanations"]}
+    assert w["none"] < 1e-6 and sum(w.values()) == pytest.approx(1.0)
+    # round 2's pair fits far better: it takes the weight alone
+    again = with_pair(a, fit("contact+krw", 250, [400.0] * 7, kind="pair"))
+    assert again["kind"] == "single" and again["members"] == ["contact+krw"]
+    assert again["separations"] == []
+    # a single answer: no separation is looked for
+    one = section(fits[:1] + fits[2:], 300, runs, obs)
+    assert one["kind"] == "single" and one["separations"] == []

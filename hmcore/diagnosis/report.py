@@ -107,6 +107,37 @@ def ranking_table(doc: dict, most: int = 15) -> str:
     return "\n".join(lines)
 
 
+def answer_lines(doc: dict, h2: str, most: int = 10) -> list[str]:
+    """The answer by the evidence (:mod:`hmcore.diagnosis.answer`): one cause or the set the
+    data cannot separate, the weight of each explanation and what would separate the set's
+    members. Empty for a diagnosis stored before it was weighed."""
+    a = doc.get("answer")
+    if not a or not a.get("explanations"):
+        return []
+    lines = [f"{h2} The answer, by the evidence", "", a["text"][0].upper() + a["text"][1:] + ".",
+             "",
+             f"Weights: the softmax of each explanation's log evidence (Laplace approximation "
+             f"from its fit's Jacobian; BIC for terms without one; the held-back history's "
+             f"predictive likelihood added), the answer the smallest set carrying "
+             f"{100 * a['mass']:.0f} % of the weight"
+             + (f"; SSRs read with the noise variance inflated {a['scale']:.2f}x (the best "
+                "fit leaves that much more than noise)" if a.get("scale", 1.0) > 1.0 else "")
+             + ".", "",
+             "| explanation | weight | log evidence | log likelihood | log Occam | parameters "
+             "| fitted SSR | held-back SSR | fitted E | held-back E |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for x in a["explanations"][:most]:
+        mark = " **(in the answer)**" if x["id"] in a["members"] else ""
+        lines.append(f"| {x['id']}{mark} | {x['weight']:.3f} | {x['log_evidence']:.1f} | "
+                     f"{x['log_likelihood']:.1f} | {x['log_occam']:.1f} | "
+                     f"{x['n_parameters']} ({x['method']}) | {_f(x['ssr_fit'], 6)} | "
+                     f"{_f(x['ssr_heldout'], 6)} | {_f(x['fit_E'])} | {_f(x['heldout_E'])} |")
+    if a.get("separations"):
+        lines += ["", "What would separate them:", ""] + [f"- {s['sentence']}"
+                                                          for s in a["separations"]]
+    return lines + [""]
+
+
 def _points(gain: dict, period: str) -> str:
     n, m = gain[f"n_{period}"], gain.get(f"n_{period}_measured")
     return f"{n} points" if m is None else f"{n} points, {m} measured: noise alone ~{m}"
@@ -164,7 +195,7 @@ def markdown_report(doc: dict, level: int = 1) -> str:
              "back.", "", f"{h2} Verdict", "", doc["verdict"], "",
              "Selected extension: " + (f"**{sel['kind']}** ({sel['id']}) - {sel['description']}"
                                        if sel else "**none**"), "",
-             ] + _accepted(doc, h2) + _windows(doc, h2) + [
+             ] + answer_lines(doc, h2) + _accepted(doc, h2) + _windows(doc, h2) + [
              f"{h2} Gain", "", gain_table(doc), ""] + (
              [f"{h2} The statistic", "", statistic_text(doc["statistic"]) + ".", ""]
              if "statistic" in doc else []) + [f"{h2} Ranked causes", "",

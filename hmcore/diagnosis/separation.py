@@ -51,7 +51,8 @@ class Separation:
                 f"{self.b} by {self.z:.1f} sigma (largest at day {self.day:.0f})")
         if history_end is not None and self.from_day is not None and \
                 self.from_day <= history_end:
-            text += " - within the fitted history: that response is not measured there"
+            text += (f" - from inside the fitted history already (to day {history_end:.0f}):"
+                     " more measurements of it, or less noisy ones, would tell them apart")
         return text
 
 
