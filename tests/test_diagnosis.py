@@ -1145,6 +1145,15 @@ def test_two_hidden_effects_are_both_accepted_each_with_its_gain(tmp_path):
     report = (tmp_path / "out" / "report.md").read_text()
     assert "## Accepted causes" in report and layer.id in report and skin.id in report
     assert "incomplete" not in doc["verdict"]  # the pair leaves noise in the held-back data
+    # by the evidence, the pair (weighed with round 1's explanations) carries the weight alone
+    # and the judge counts it right (issue 46)
+    from hmcore.scenarios.effects import HiddenEffect
+    from hmcore.scenarios.judge import judge_effects
+
+    assert doc["answer"]["members"] == [f"{accepted[0]['id']}+{accepted[1]['id']}"], \
+        doc["answer"]["text"]
+    j = judge_effects(doc, [HiddenEffect(skin, 12.0), HiddenEffect(layer, 0.3)])
+    assert j["outcome"] == "right" and j["set_size"] == 1
     # one cause only when asked: the second is not looked for
     one = diagnose(case, sim.evaluate_batch, settings=DiagnosisSettings(plots=False,
                                                                        max_causes=1))

@@ -235,6 +235,12 @@ def test_the_judge_counts_right_honest_and_wrong_with_set_sizes(synthetic_candid
     assert outcome(["none"], [])["outcome"] == "right"  # the control
     assert outcome(["none", krw.id], [])["outcome"] == "honest"
     assert outcome([krw.id], [])["outcome"] == "wrong"
+    # two effects: a pair of round 2 that names both ("a+b")
+    pair = [HiddenEffect(skin, 12.0), HiddenEffect(krw, 2.0)]
+    assert outcome([f"{krw.id}+{skin.id}"], pair)["outcome"] == "right"
+    assert outcome([skin.id, f"{skin.id}+{krw.id}"], pair)["outcome"] == "honest"
+    assert outcome([skin.id], pair)["outcome"] == "wrong"
+    assert outcome([f"{skin.id}+{other.id}"], pair)["outcome"] == "wrong"
     # judge() carries it beside its own verdict
     j = judge(_judged_doc([krw.id, skin.id], ranked), truth[0])
     assert j["outcome"] == "honest" and j["set_size"] == 2 and not j["found"]

@@ -136,7 +136,7 @@ def section(fits: list[Fit], n_fit: int, runs: dict[str, Run], obs: ObservationS
         if len(frames) > 1:
             table = separation.tabulate(frames, sigma_by_series(obs))
             pairs = separation.separations(*table)
-            first = list(frames)[0]
+            first = next(iter(frames))
             seps = sorted((p for p in pairs if first in (p.a, p.b)),
                           key=lambda p: -p.z)[:MAX_SEPARATIONS]
     return _document(ranked, fits, seps, obs.history_end_days, n_fit)

@@ -96,7 +96,7 @@ class Fit:
 
     @property
     def n_parameters(self) -> int:
-        return int(len(self.jtj_eigenvalues)) + int(self.n_bic)
+        return len(self.jtj_eigenvalues) + int(self.n_bic)
 
     @property
     def method(self) -> EvidenceMethod:

@@ -29,9 +29,12 @@ import copy
 import dataclasses
 from dataclasses import dataclass
 
-from hmcore.diagnosis import decision
+import numpy as np
+
+from hmcore.diagnosis import answer, decision
 from hmcore.diagnosis.budget import budget_problem
 from hmcore.diagnosis.confirmation import heldout_confirms, heldout_noise_line
+from hmcore.diagnosis.evidence import Fit
 from hmcore.diagnosis.extensions import extended_space
 from hmcore.diagnosis.runs import heldout_per_well
 from hmcore.diagnosis.workflow import Diagnosis
@@ -112,6 +115,24 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
         pair_ok = not p.tentative or heldout_confirms(
             base_sc["ssr_heldout"], again.ssr_heldout, base_sc["E_heldout"],
             pair_sc["E_heldout"], d1.obs.n_noise("heldout"), s)[0]
+    second_conf = d2.confirmed.get(second) if second else None
+    members = (doc.get("answer") or {}).get("members")
+    if pair_run is not None and (doc.get("answer") or {}).get("fits"):
+        doc["answer"] = weigh_pair(doc["answer"], p.first, second, again,
+                                   second_conf.get("jtj_eigenvalues"))
+    doc, final = _both(doc, doc1, doc2, d1, p, second, pair_ok,
+                       pair_sc if pair_run else None, again if pair_run else None, pair_run)
+    if (doc.get("answer") or {}).get("members") != members:
+        doc["verdict"] += ". With round 2's pair weighed too, " + doc["answer"]["text"]
+    return doc, final
+
+
+def _both(doc: dict, doc1: dict, doc2: dict, d1: Diagnosis, p: Plan, second: str | None,
+          pair_ok: bool, pair_sc: dict | None, again, pair_run) -> tuple[dict, object | None]:
+    """:func:`combine`'s document once round 2 is known (``again``: the pair's run under
+    round 1's noise model, ``pair_sc`` its scores, ``pair_ok`` whether it is accepted)."""
+    s, d2 = d1.settings, p.diagnosis
+    base_sc = d1.run_scores(d1.base)
     first_conf, second_conf = d1.confirmed[p.first], (d2.confirmed.get(second) if second
                                                       else None)
     summary = {"round": 2, "builds_on": p.first, "tentative": p.tentative,
@@ -174,6 +195,17 @@ def combine(d1: Diagnosis, doc1: dict, p: Plan, doc2: dict) -> tuple[dict, objec
                                     second_conf["per_well_response_after"],
                                     second_conf["per_well_response_heldout_after"])}
     return doc, pair_run
+
+
+def weigh_pair(ans: dict, first: str, second: str, run, eigenvalues: list | None) -> dict:
+    """Round 1's answer weighed again with the pair ``first+second`` among the explanations
+    (:func:`hmcore.diagnosis.answer.with_pair`): its SSRs those of its run under round 1's
+    noise model (``run``, rescored), its curvature round 2's recalibration's (its globals, the
+    first cause's parameter and the second's)."""
+    pair = Fit(f"{first}+{second}", "pair", run.ssr_fit, run.ssr_heldout,
+               np.asarray(eigenvalues if eigenvalues is not None else [], float),
+               n_bic=0 if eigenvalues is not None else 2)
+    return answer.with_pair(ans, pair)
 
 
 def remaining_text(ssr_heldout: float, n_heldout: int, s, causes: str,

@@ -11,10 +11,10 @@ from __future__ import annotations
 from enum import Enum
 
 from hmcore.diagnosis.decision import heldout_decisive_drop
-from hmcore.scoring.record_format import upgrade_diagnosis
 from hmcore.diagnosis.settings import DiagnosisSettings
 from hmcore.scenarios.effects import HiddenEffect
 from hmcore.scenarios.generators import START_TOLERANCE_DAYS
+from hmcore.scoring.record_format import upgrade_diagnosis
 
 
 class Outcome(str, Enum):
@@ -204,23 +204,32 @@ def answer_outcome(doc: dict, effects: list[HiddenEffect], signal: dict | None =
     """The :class:`Outcome` of ``doc``'s answer (``doc["answer"]``: its members, one or the
     set) for the hidden ``effects`` (none: the control, whose truth is ``none``; an effect of
     no family: ``unexplained``, or ``none`` too when the data hardly show it). One library or
-    generated effect is named as :func:`names` says; several effects (no pair is weighed
-    yet) and a document from before the answer was weighed (``derived``, see
-    :func:`hmcore.scoring.record_format.upgrade_diagnosis`) take ``found``: right or wrong.
+    generated effect is named as :func:`names` says; several effects by a pair (round 2's
+    ``a+b``) whose causes name each; a document from before the answer was weighed
+    (``derived``, see :func:`hmcore.scoring.record_format.upgrade_diagnosis`) takes ``found``:
+    right or wrong.
     Returns ``outcome``, ``set_size`` and ``members``."""
     a = upgrade_diagnosis(doc)["answer"]
     members = list(a.get("members") or [])
     size = len(members)
-    if a.get("derived") or len(effects) > 1:
+    if a.get("derived"):
         out = Outcome.RIGHT if found else Outcome.WRONG
         return {"outcome": out.value, "set_size": max(size, 1), "members": members}
-    if not effects:
-        hit = ["none" == _member(m, doc)["kind"] for m in members]
-    elif effects[0].kind == "unexplained":
-        ok = ("unexplained", "none") if not visible(signal) else ("unexplained",)
-        hit = [_member(m, doc)["kind"] in ok for m in members]
-    else:
-        hit = [names(described(_member(m, doc), doc), effects[0]) for m in members]
+    no_family = ("unexplained", "none") if not visible(signal) else ("unexplained",)
+
+    def named(effect: HiddenEffect, part: str) -> bool:
+        cause = _member(part, doc)
+        if effect.kind == "unexplained":
+            return cause["kind"] in no_family
+        return names(described(cause, doc), effect)
+
+    def holds(m: str) -> bool:  # a pair (round 2's "a+b") holds the truth when its causes do
+        parts = m.split("+")
+        if not effects:
+            return len(parts) == 1 and _member(m, doc)["kind"] == "none"
+        return all(any(named(e, part) for part in parts) for e in effects)
+
+    hit = [holds(m) for m in members]
     out = (Outcome.RIGHT if size == 1 and hit[0] else
            Outcome.HONEST if size > 1 and any(hit) else Outcome.WRONG)
     return {"outcome": out.value, "set_size": size, "members": members}
