@@ -308,3 +308,22 @@ def test_an_ambiguous_answer_names_the_measurement_that_separates_it():
     # a single answer: no separation is looked for
     one = section(fits[:1] + fits[2:], 300, runs, obs)
     assert one["kind"] == "single" and one["separations"] == []
+
+
+def test_reveal_prints_the_answer_by_the_evidence(tmp_path):
+    """`hmflow reveal` says right / honest / wrong and the answer's set beside FOUND."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from hmflow.cli import app
+
+    control = tmp_path / "hidden_effect.json"
+    control.write_text(json.dumps({"effect": None, "truth": {}}))
+    doc = _judged_doc(["none", "unexplained"], [])
+    doc["causes"][0]["description"] = "nothing beyond noise"
+    path = tmp_path / "diagnosis.json"
+    path.write_text(json.dumps(doc))
+    out = CliRunner().invoke(app, ["reveal", "--hidden", str(control), "--diagnosis", str(path)])
+    assert out.exit_code == 0, out.output  # found: the control's none, selected nothing
+    assert "by the evidence: HONEST (answer of 2: none, unexplained)" in out.output

@@ -154,6 +154,9 @@ def reveal(hidden: Path = typer.Option(..., "--hidden", help="hidden_effect.json
     else:
         _print_effect(r)
     console.print("[bold green]FOUND[/]" if r.found else "[bold red]NOT FOUND[/]")
+    j = r.verdict  # the answer by the evidence (issue 46): right, honest or wrong
+    console.print(f"by the evidence: {j['outcome'].upper()} (answer of {j['set_size']}: "
+                  f"{', '.join(j['members']) or '-'})", highlight=False)
     if not r.found:
         raise typer.Exit(1)
 
