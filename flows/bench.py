@@ -100,7 +100,7 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
     # another benchmark (another --name)
     check_campaign_settings(storage, bench, {"case_artifact": case_version.ref(),
                                              "budget": budget, "workers": workers})
-    with make_runner(task_runner, workers, dask_address) as started:
+    with make_runner(task_runner, workers, dask_address, loaded.cluster) as started:
         run_references(loaded, storage, reference, started, observation_set(loaded))
     store = ArtifactStore(storage)
     for campaign, (method, seed) in campaigns.items():

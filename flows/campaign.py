@@ -218,7 +218,7 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
         progress = Progress(campaign, budget)
         progress.update([r for i, r in done.items() if i < budget])
 
-        with make_runner(task_runner, workers, dask_address) as runner:
+        with make_runner(task_runner, workers, dask_address, loaded.cluster) as runner:
             references = run_references(loaded, storage, reference, runner, observations)
 
             def evaluate_batch(jobs: list[Job]) -> list[dict]:

@@ -93,7 +93,7 @@ def ensemble_flow(case: str = "synthetic", workers: Annotated[int, Field(ge=1)] 
     iterations = len(loaded.ensemble.alphas)
     progress = Progress(campaign, loaded.ensemble.size * (iterations + 1))
     planned: dict[int, list[int]] = {}
-    with make_runner(task_runner, workers, dask_address) as runner:
+    with make_runner(task_runner, workers, dask_address, loaded.cluster) as runner:
         for i in range(iterations + 1):  # the last round runs the posterior
             jobs = member_jobs(loaded, ensemble, i, setup.layout)
             planned[i] = [j.index for j in jobs]

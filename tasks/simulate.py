@@ -132,6 +132,19 @@ def responses_record(responses: pd.DataFrame) -> dict:
             "values": [responses[c].tolist() for c in responses.columns]}
 
 
+BATCH_JOB_VARIABLES = ("SLURM_JOB_ID", "PBS_JOBID", "LSB_JOBID")
+"""Where Slurm, PBS and LSF tell a job's processes their job id."""
+
+
+def batch_job() -> dict[str, str]:
+    """``{"batch_job": id}`` when this process runs in a batch job (a Dask worker of
+    ``--cluster``), so that the journal tells which job ran each call; else ``{}``."""
+    for name in BATCH_JOB_VARIABLES:
+        if os.environ.get(name):
+            return {"batch_job": os.environ[name]}
+    return {}
+
+
 def simulate_parameters(case: Case, job: Job, store_root: str, campaign: str, seed: int,
                         agent: str, observations=None,
                         destination: Destination = CAMPAIGN,
@@ -175,6 +188,6 @@ def simulate(case: Case, job: Job, store_root: str, campaign: str, seed: int, ag
                           "action": list(job.action), "seed": seed, "agent": agent,
                           "attempts": attempt, "finished_at": time.time(),
                           "host": socket.gethostname(), "host_pid": os.getpid(),  # who ran it
-                          **ev.to_record(), **extra})
+                          **batch_job(), **ev.to_record(), **extra})
     journal.record(job.index, record)
     return record

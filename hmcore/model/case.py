@@ -73,6 +73,7 @@ from hmcore.errors import CaseError, Problem
 from hmcore.fields.ensemble import EnsembleSpec
 from hmcore.fields.spec import FieldSpec
 from hmcore.model import case_fields
+from hmcore.model.cluster import ClusterSettings
 from hmcore.model.noise_section import (
     NoiseSection,
     QuantityNoise,
@@ -165,6 +166,7 @@ class CaseFile(BaseModel):
     parameters: tuple[case_fields.ParameterEntry, ...] | None = None
     ensemble: EnsembleSpec = EnsembleSpec()
     noise: dict[str, QuantityNoise] = {}
+    cluster: ClusterSettings = ClusterSettings()
 
 
 @dataclass(frozen=True)
@@ -190,6 +192,7 @@ class Case:
     folder resolved against the case file."""
     ensemble: EnsembleSpec = field(default_factory=EnsembleSpec)
     """The ``[ensemble]`` section (its defaults when the file has none)."""
+    cluster: ClusterSettings = field(default_factory=ClusterSettings)  # ``[cluster]``
 
     @property
     def informative(self) -> pd.DataFrame:
@@ -357,11 +360,9 @@ def load_case_file(case: str | Path) -> Case:
     backend = (data.get("simulator") or {}).get("backend") if isinstance(
         data.get("simulator"), dict) else None
     if isinstance(backend, str):  # checked even when other keys are wrong
-
         problems.extend(simulator_problems(backend, f"{path} key 'simulator.backend'"))
     processes = (data.get("simulator") or {}).get("processes") if isinstance(
         data.get("simulator"), dict) else None
-
     if (isinstance(processes, int) and processes > 1
             and (backend if isinstance(backend, str) else "opm") in OPM_BACKENDS):
         problems.append(Problem(
@@ -420,7 +421,7 @@ def load_case_file(case: str | Path) -> Case:
                 ParameterSpace(parameters=tuple(params)), info, cfg.case.time_tolerance_days,
                 end, cfg.misfit, cfg.simulator, cfg.physics, dict(cfg.noise),
                 tuple(case_fields.resolved(f, partial(_relative_to, path)) for _, f in fields),
-                cfg.ensemble.resolved([f for _, f in fields]))
+                cfg.ensemble.resolved([f for _, f in fields]), cfg.cluster)
 
 
 def _before_first(path: Path, end: float, first: float) -> Problem:
@@ -493,7 +494,8 @@ def _hint(err: dict, key: str = "") -> str:
 
 
 _SECTIONS = {"case": CaseSection, "misfit": MisfitSettings, "simulator": SimulatorSettings,
-             "physics": PhysicsSettings, "ensemble": EnsembleSpec, "noise": QuantityNoise}
+             "physics": PhysicsSettings, "ensemble": EnsembleSpec, "noise": QuantityNoise,
+             "cluster": ClusterSettings}
 """The section a key sits in -> its model (a ``[[parameters]]`` entry's model is known by its
 kind, :func:`hmcore.model.case_fields.entry_choices`)."""
 

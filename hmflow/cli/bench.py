@@ -24,6 +24,9 @@ from hmflow.cli.common import (
     refuse,
 )
 from hmflow.cli.flowrun import (
+    CLUSTER_HELP,
+    batch_runner,
+    check_cluster,
     fit_workers,
     flow_refused,
     hold_name,
@@ -52,12 +55,15 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
           task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
           dask_address: Optional[str] = typer.Option(None, "--dask-address",
                                                      help=DASK_HELP),
+          cluster: Optional[str] = typer.Option(None, "--cluster", help=CLUSTER_HELP),
           verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Equal-budget benchmark: every method x seed is an ordinary campaign (a stopped benchmark
     resumes where it was), then one table, Parquet files and a best-so-far plot."""
     prefect_environment(verbose)
+    task_runner = batch_runner(cluster, task_runner, dask_address)
     storage = folder("--storage", storage)
     c = load_case(case)
+    check_cluster(c, task_runner)
     refuse(scalar_problems(c))
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     chosen = list(AGENTS) if methods == "all" else [m.strip() for m in methods.split(",")

@@ -30,6 +30,9 @@ from hmflow.cli.common import (
     refuse,
 )
 from hmflow.cli.flowrun import (
+    CLUSTER_HELP,
+    batch_runner,
+    check_cluster,
     check_inputs,
     fit_workers,
     flow_refused,
@@ -66,6 +69,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                                                help=CAMPAIGN_HELP),
         task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
         dask_address: Optional[str] = typer.Option(None, "--dask-address", help=DASK_HELP),
+        cluster: Optional[str] = typer.Option(None, "--cluster", help=CLUSTER_HELP),
         fork: Optional[str] = typer.Option(None, "--fork", callback=checked_campaign,
                                            help="Start a new campaign FORK on the case as it "
                                            "is now, recording that it comes from --campaign "
@@ -74,6 +78,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Run a calibration campaign as a Prefect flow and print the best case and the tables."""
     prefect_environment(verbose)
+    task_runner = batch_runner(cluster, task_runner, dask_address)
     # storage imports pandas: keeps `hmflow --help` fast
     from storage import ArtifactStore, EvaluationJournal, refuse_links
 
@@ -82,6 +87,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         hold_name(storage.resolve(), fork or campaign, "campaign")
     c = load_case(case)  # clear errors before any simulator time or Prefect start-up
     refuse(scalar_problems(c))
+    check_cluster(c, task_runner)
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     check_inputs(agent, budget, workers, task_runner)
     if fork is not None:

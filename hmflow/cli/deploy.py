@@ -27,7 +27,7 @@ from hmflow.cli.common import (
     option,
     refuse,
 )
-from hmflow.cli.flowrun import dask_problems
+from hmflow.cli.flowrun import CLUSTER_HELP, batch_runner, check_cluster, dask_problems
 
 if TYPE_CHECKING:  # the case module imports pandas: keeps `hmflow --help` fast
     from hmcore.model.case import Case
@@ -130,6 +130,7 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
                                           "deployment"),
            task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
            dask_address: str | None = typer.Option(None, "--dask-address", help=DASK_HELP),
+           cluster: str | None = typer.Option(None, "--cluster", help=CLUSTER_HELP),
            list_: bool = typer.Option(False, "--list", help="List hmflow's deployments on the "
                                       "server and exit")) -> None:
     """Deploy the case's flow on a schedule (and its report-only rerun) to a Prefect server's
@@ -161,6 +162,7 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
                       str(p.get("budget", "-")))
         console.print(t)
         return
+    task_runner = batch_runner(cluster, task_runner, dask_address)
     problems = []
     if cron and interval:
         problems.append("give --cron or --interval, not both")
@@ -178,6 +180,8 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
         problems += input_problems(agent, budget, workers, task_runner, spell=option)
     problems += dask_problems(task_runner, dask_address)
     refuse(problems)
+    if target.case is not None:
+        check_cluster(target.case, task_runner)
     tags = ["hmflow", f"case:{dep.case_name(case)}"]
     if target.flow == "ensemble":
         params = dep.ensemble_parameters(case=case, workers=workers, storage=storage,

@@ -26,6 +26,9 @@ from hmflow.cli.common import (
     refuse,
 )
 from hmflow.cli.flowrun import (
+    CLUSTER_HELP,
+    batch_runner,
+    check_cluster,
     dask_problems,
     flow_refused,
     hold_name,
@@ -56,10 +59,12 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
              dask_address: Optional[str] = typer.Option(None, "--dask-address",
                                                         help=DASK_HELP),
              kinds: Optional[str] = typer.Option(None, "--kinds", help=KINDS_HELP),
+             cluster: Optional[str] = typer.Option(None, "--cluster", help=CLUSTER_HELP),
              verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Find what the calibrated model gets wrong, name the cause, extend the model, measure the
     gain on the fitted and the held-back history; writes diagnosis.json (path printed)."""
     prefect_environment(verbose)
+    task_runner = batch_runner(cluster, task_runner, dask_address)
     # the diagnosis and storage import pandas: keeps `hmflow --help` fast
     from hmcore.diagnosis.settings import parse_kinds
     from storage import ArtifactStore
@@ -87,6 +92,7 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
         campaign = campaign or from_campaign  # the diagnosis goes into that campaign's report
     case = case or "synthetic"
     c = load_case(case)  # clear errors before any simulator time or Prefect start-up
+    check_cluster(c, task_runner)
     check_budget(c, budget, kind_list, calibrated is not None)
     storage = storage.resolve()
     hold_name(storage, campaign or default_campaign_name(c.name), "diagnosis")

@@ -28,6 +28,9 @@ from hmflow.cli.common import (
     refuse,
 )
 from hmflow.cli.flowrun import (
+    CLUSTER_HELP,
+    batch_runner,
+    check_cluster,
     check_inputs,
     fit_workers,
     flow_refused,
@@ -52,15 +55,18 @@ def ensemble(case: str = typer.Option(..., "--case", help="Case TOML file with k
              task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
              dask_address: Optional[str] = typer.Option(None, "--dask-address",
                                                         help=DASK_HELP),
+             cluster: Optional[str] = typer.Option(None, "--cluster", help=CLUSTER_HELP),
              verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Match the case's field parameters with ES-MDA (prior, updates, posterior) and print
     the forecast of the prior and the posterior."""
     prefect_environment(verbose)
+    task_runner = batch_runner(cluster, task_runner, dask_address)
     # storage imports pandas: keeps `hmflow --help` fast
     from storage import refuse_links
 
     storage = folder("--storage", storage)
     c = load_case(case)  # every problem before Prefect starts or anything runs
+    check_cluster(c, task_runner)
     refuse(ensemble_problems(c))
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     check_inputs(workers=workers, task_runner=task_runner)

@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 from typing import Optional
 
+import typer
 from rich.markup import escape
 from rich.progress import (
     BarColumn,
@@ -24,7 +25,8 @@ from rich.progress import (
 )
 
 from flows.inputs import input_problems
-from hmflow.cli.common import console, fail, option, refuse
+from hmcore.model.cluster import CLUSTER_KINDS, cluster_problems
+from hmflow.cli.common import console, fail, option, print_problems, refuse
 from hmflow.console import quiet_prefect_lines
 from hmflow.server import temporary_api
 
@@ -39,6 +41,37 @@ def dask_problems(task_runner: str, dask_address: Optional[str]) -> list[str]:
     """``--dask-address`` without ``--task-runner dask`` would be ignored: a mistake."""
     return ["--dask-address needs --task-runner dask"] if dask_address and \
         task_runner != "dask" else []
+
+
+CLUSTER_HELP = ("Run each simulator call in a batch job of this queue system (slurm, pbs, lsf; "
+                "dask-jobqueue), as the case file's cluster section says; see docs/cluster.md")
+
+
+def batch_runner(cluster: Optional[str], task_runner: str, dask_address: Optional[str]) -> str:
+    """The task runner ``--cluster`` stands for (its kind), else ``--task-runner``; exit 2
+    with one line on an unknown kind, or when ``--cluster`` comes with another runner."""
+    if cluster is None:
+        return task_runner
+    if cluster not in CLUSTER_KINDS:
+        fail(f"--cluster must be one of {list(CLUSTER_KINDS)}, got {cluster!r}")
+    if task_runner not in ("threads", cluster) or dask_address:
+        fail(f"--cluster {cluster} runs the calls in {cluster} jobs: give it without "
+             "--task-runner and --dask-address")
+    return cluster
+
+
+def check_cluster(case, task_runner: str) -> None:
+    """For a batch system's runner: exit 2 with every problem of the case's ``[cluster]``
+    against its simulator (walltime, cores; :func:`hmcore.model.cluster.cluster_problems`)
+    before any job is submitted."""
+    if task_runner not in CLUSTER_KINDS:
+        return
+    problems = cluster_problems(case.cluster, case.simulator.timeout_s,
+                                case.simulator.cores_per_run, str(case.source))
+    if problems:
+        print_problems(f"Case {case.source} cannot run its calls in {task_runner} jobs",
+                       problems)
+        raise typer.Exit(2)
 
 
 def fit_workers(workers: int, threads: int, task_runner: str) -> int:
