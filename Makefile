@@ -1,6 +1,6 @@
 # The two commands of the README. Both create ./.venv and install hmflow into it first.
 #   make run    - install, then run the main job (a 200-call campaign of the default method, lm, on the built-in synthetic case)
-#   make test   - install (with test extras, Debian's OPM `flow` and chromium when apt is usable), then run the tests
+#   make test   - install (with test extras, Debian's OPM `flow`, chromium, slurm-wlm and munge when apt is usable as root), then run the tests
 #                 (real OPM, Prefect and Parquet integration tests included; `-m slow` ones are the long sweeps),
 #                 two test files at a time (pytest-xdist: the machine's 2 cores; a test's simulations share them)
 PY ?= python3
@@ -28,6 +28,11 @@ install-test: install
 	  (apt-get install -y -q chromium >/dev/null 2>&1 || (apt-get update -q >/dev/null && \
 	   DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >/dev/null))) || \
 	  echo "note: Debian's chromium is not installed; the browser tests of the Prefect UI will be skipped"
+	command -v slurmctld >/dev/null || (command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ] && \
+	  (DEBIAN_FRONTEND=noninteractive apt-get install -y -q slurm-wlm munge >/dev/null 2>&1 || \
+	   (apt-get update -q >/dev/null && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -q slurm-wlm munge >/dev/null))) || \
+	  echo "note: Debian's slurm-wlm is not installed (or not root); the one-node Slurm tests will be skipped"
 
 run: install
 	$(BIN)/hmflow run
