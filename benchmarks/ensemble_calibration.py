@@ -3,7 +3,7 @@ run on each, and the share of truths inside the posterior's P10-P90 (issue 41).
 
     python benchmarks/ensemble_calibration.py --case CASE --out DIR --truths 1 2 ... \
         [--variant none] [--variant distance:radius=1500] [--variant adaptive] \
-        [--set size=50] [--workers 2] [--max-minutes 120]
+        [--set size=50] [--stated-noise] [--workers 2] [--max-minutes 120]
 
 For each truth seed s: ``hmflow hide --kind field --case CASE --out DIR/truth-s --seed s``
 (a truth drawn from CASE's own prior, never one of the members, simulated over the whole
@@ -13,6 +13,11 @@ keys (``--set`` applies to every variant; a variant is ``localisation[:key=value
 and ``hmflow reveal``'s judgement: for FOPT, FWPT, FGPT and each well's WOPT at the
 schedule's end, is the truth inside the prior's and the posterior's P10-P90, and how far the
 mean fields are from the truth's.
+
+With ``--stated-noise`` every campaign (``t<s>-<variant>-sigma``) fits a copy of the hidden
+history with the noise that made it in its ``sigma`` column (drawn again from the truth's noise
+stream and checked against the stored history), instead of the noise estimated from the data:
+what the smoother's calibration is when the noise is right.
 
 Everything resumes: a truth already drawn is kept, a campaign already run is judged from the
 store, a campaign cut short is resumed by its own journal. ``--max-minutes`` stops starting new
@@ -24,10 +29,12 @@ inside per variant and quantity, with its count) is printed as Markdown. Nothing
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import tomlkit
 
@@ -39,7 +46,9 @@ from hmcore.scenarios.field_truth import (  # noqa: E402
     TRUTH_JSON,
     hide_field_truth,
     reveal_field_truth,
+    truth_streams,
 )
+from hmcore.scenarios.hidden import noisy_history  # noqa: E402
 from storage import ArtifactStore  # noqa: E402
 from storage.ensemble import FORECAST_STEP  # noqa: E402
 
@@ -57,12 +66,37 @@ def variant_keys(variant: str) -> tuple[str, dict]:
     return label, keys
 
 
-def case_copy(hidden_case: Path, keys: dict, dest: Path) -> Path:
+def stated_history(hidden_dir: Path, dest: Path) -> Path:
+    """``dest/observed.csv``: the hidden history of ``hidden_dir`` with the sigma that made it.
+
+    The noise is drawn again as :func:`hmcore.scenarios.field_truth.hide_field_truth` drew it
+    (the truth's noise stream, ``noisy_history`` on ``truth_responses.csv``); the values must
+    equal the stored ``observed.csv`` (to its 6 digits), or the history is not the one hidden."""
+    doc = json.loads((hidden_dir / TRUTH_JSON).read_text())
+    stored = pd.read_csv(hidden_dir / "observed.csv")
+    truth = pd.read_csv(hidden_dir / "truth_responses.csv")
+    rng = np.random.default_rng(truth_streams(doc["seed_stream"]["entropy"], doc["seed"])[2])
+    drawn = noisy_history(truth[truth.well.isin(stored.well.unique())], rng)
+    drawn = drawn[drawn.days <= doc["history_end_days"] + 1e-9].reset_index(drop=True)
+    key = ["well", "days", "quantity"]
+    both = stored.merge(drawn[key + ["value", "sigma"]], on=key, suffixes=("", "_drawn"))
+    if len(both) != len(stored) or not np.allclose(both.value, both.value_drawn, rtol=1e-5,
+                                                   atol=1e-9):
+        raise ValueError(f"{hidden_dir}: the noise drawn again does not give the stored history")
+    dest.mkdir(parents=True, exist_ok=True)
+    out = dest / "observed.csv"
+    both.drop(columns=["value_drawn"]).to_csv(out, index=False, float_format="%.6g")
+    return out
+
+
+def case_copy(hidden_case: Path, keys: dict, dest: Path, observed: Path | None = None) -> Path:
     """A case file with its ``[ensemble]`` keys set, its deck and history by absolute path (a
-    copy in ``dest``, rewritten only when it changes)."""
+    copy in ``dest``, rewritten only when it changes); ``observed`` replaces the history."""
     doc = tomlkit.parse(hidden_case.read_text())
     for section in ("deck", "observed"):
         doc["case"][section] = str((hidden_case.parent / doc["case"][section]).resolve())
+    if observed is not None:
+        doc["case"]["observed"] = str(observed.resolve())
     ensemble = doc.setdefault("ensemble", tomlkit.table())
     for k, v in keys.items():
         ensemble[k] = v
@@ -100,6 +134,8 @@ def main() -> None:
                     help="localisation[:key=value,...]; default: none and adaptive")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="an [ensemble] key for every variant (e.g. size=50)")
+    ap.add_argument("--stated-noise", action="store_true",
+                    help="fit the history with the sigma that made it (campaigns '...-sigma')")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--max-minutes", type=float, default=None)
     args = ap.parse_args()
@@ -112,6 +148,8 @@ def main() -> None:
     common = {k.strip(): tomlkit.parse(f"v = {v.strip()}")["v"]
               for k, _, v in (item.partition("=") for item in args.set)}
     variants = [variant_keys(v) for v in (args.variant or ["none", "adaptive"])]
+    if args.stated_noise:
+        variants = [(f"{label}-sigma", keys) for label, keys in variants]
     base = load_case(args.case)
     checks, errors, skipped = [], [], []
     for s in args.truths:
@@ -128,8 +166,9 @@ def main() -> None:
                 print(f"truth {s}: drawn and run into {hidden_dir}", flush=True)
                 hide_field_truth(base, hidden_dir, s)
             if not done:
-                case = case_copy(hidden_dir / "case.toml", {**common, **keys},
-                                 out / "cases" / campaign)
+                dest = out / "cases" / campaign
+                observed = stated_history(hidden_dir, dest) if args.stated_noise else None
+                case = case_copy(hidden_dir / "case.toml", {**common, **keys}, dest, observed)
                 print(f"{campaign}: ensemble run ({time.time() - started:.0f} s in)", flush=True)
                 result = ensemble_flow(case=str(case), workers=args.workers,
                                        storage=str(store), campaign=campaign)
