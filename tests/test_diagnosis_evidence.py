@@ -133,6 +133,7 @@ def test_an_inflated_noise_model_is_read_less_sharply():
 def test_softmax_is_stable():
     w = softmax(np.array([-1e6, -1e6 + 1.0, -np.inf]))
     assert w[2] == 0.0 and w[1] / w[0] == pytest.approx(math.e)
+    assert list(softmax(np.array([-np.inf, -np.inf]))) == [0.5, 0.5]
 
 
 # ----------------------------------------------------------------------------- separation
@@ -180,6 +181,14 @@ def test_the_sentence_and_the_grid():
                            "from contact by 4.0 sigma")
     assert "inside" not in text
     assert "inside the fitted history" in s.sentence(history_end=3500)
+    # two models never 2 sigma apart: no single measurement separates them, says the sentence
+    near = preds.copy()
+    near[1] = preds[0] + 0.15  # contact = krw + 1.5 sigma everywhere
+    (c,) = separations(ids, series, days, near, sigma)
+    assert c.from_day is None and c.z == pytest.approx(1.5)
+    assert c.sentence().startswith("no single measurement separates krw from contact by 2 "
+                                   "sigma in the schedule run; the most, 1.5 sigma: a "
+                                   "water-cut measurement at PRO-11")
     # a series with no sigma is left out
     assert tabulate(frames, {})[1] == []
 

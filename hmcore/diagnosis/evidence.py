@@ -164,8 +164,10 @@ def jtj_eigenvalues(jacobian: np.ndarray | None) -> np.ndarray | None:
 
 
 def softmax(log_evidence: np.ndarray) -> np.ndarray:
-    """Shape (m,) -> (m,): ``exp(l - max) / sum``; -inf gets 0."""
+    """Shape (m,) -> (m,): ``exp(l - max) / sum``; -inf gets 0 (all -inf: equal weights)."""
     x = np.asarray(log_evidence, float)
+    if not np.isfinite(np.max(x)):
+        return np.full(x.shape, 1.0 / x.size)
     e = np.exp(x - np.max(x))
     return e / e.sum()
 

@@ -42,13 +42,17 @@ class Separation:
 
     def sentence(self, history_end: float | None = None) -> str:
         """E.g. "a water-cut measurement at PRO-11 after day 3500 separates A from B by 4
-        sigma (largest at day 4100)"."""
+        sigma (largest at day 4100)"; when they never differ by :data:`LINE` sigma, that no
+        single measurement separates them, and where one comes closest."""
         what = WORDS.get(self.quantity, self.quantity)
         article = "an" if what[0] in "aeiou" else "a"
-        when = (f"after day {self.from_day:.0f}" if self.from_day is not None
-                else f"at day {self.day:.0f}")
-        text = (f"{article} {what} measurement at {self.well} {when} separates {self.a} from "
-                f"{self.b} by {self.z:.1f} sigma (largest at day {self.day:.0f})")
+        if self.from_day is None:  # never LINE sigma apart: say so, and where they come closest
+            return (f"no single measurement separates {self.a} from {self.b} by {LINE:g} "
+                    f"sigma in the schedule run; the most, {self.z:.1f} sigma: {article} {what} "
+                    f"measurement at {self.well} at day {self.day:.0f}")
+        text = (f"{article} {what} measurement at {self.well} after day {self.from_day:.0f} "
+                f"separates {self.a} from {self.b} by {self.z:.1f} sigma (largest at day "
+                f"{self.day:.0f})")
         if history_end is not None and self.from_day is not None and \
                 self.from_day <= history_end:
             text += (f" - from inside the fitted history already (to day {history_end:.0f}):"
