@@ -23,6 +23,10 @@ from typing import Literal
 
 from hmcore.model.cluster import CLUSTER_KINDS, ClusterKind, ClusterSettings
 
+IDLE_JOB_S = 60
+"""How long (s) a batch job's worker may idle before the adaptive cluster releases it: longer
+than the method's pause between two batches of calls, or each batch waits for new jobs to
+start (with Dask's 3 s, 7 jobs were submitted for 8 calls and one ran them all)."""
 Runner = Literal["threads", "dask", "slurm", "pbs", "lsf"]
 RUNNERS = ("threads", "dask", *CLUSTER_KINDS)
 
@@ -53,5 +57,6 @@ def task_runner(kind: str, workers: int, dask_address: str | None = None,
                               cluster_kwargs={**settings.job_kwargs(batch),
                                               "scheduler_options": {"dashboard_address": ":0"},
                                               "job_name": "hmflow"},
-                              adapt_kwargs={"minimum": 0, "maximum": settings.max_jobs})
+                              adapt_kwargs={"minimum": 0, "maximum": settings.max_jobs,
+                                            "interval": "1s", "wait_count": IDLE_JOB_S})
     raise ValueError(f"task_runner must be one of {list(RUNNERS)}, got {kind!r}")

@@ -47,7 +47,7 @@ def test_a_case_s_cluster_section_reaches_dask_jobqueue(small_case, tmp_path):
     assert (kwargs["queue"], kwargs["cores"], kwargs["processes"], kwargs["memory"],
             kwargs["walltime"], kwargs["account"]) == ("short", 2, 1, "3GB", "1-00:00:00", "geo")
     assert kwargs["job_extra_directives"] == ["--constraint=ssd"]
-    assert runner.adapt_kwargs == {"minimum": 0, "maximum": 7}
+    assert (runner.adapt_kwargs["minimum"], runner.adapt_kwargs["maximum"]) == (0, 7)
     assert "project" in ClusterSettings(account="geo").job_kwargs(ClusterKind.PBS)
     assert case.cluster.walltime_s == 86400
 
