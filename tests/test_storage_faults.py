@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -141,3 +142,24 @@ def test_a_store_removed_while_running_is_a_fault_naming_it(tmp_path):
     with pytest.raises(FileNotFoundError) as gone:
         require_store(store)
     assert gone.value.filename == str(store)
+
+
+@pytest.mark.opm
+def test_a_store_removed_mid_campaign_ends_in_one_line(small_case, prefect_api, tmp_path):
+    store = tmp_path / "store"
+    run = _hmflow("run", "--case", str(small_case), "--agent", "random", "--budget", "4",
+                  "--workers", "1", "--seed", "8", "--campaign", "gone", "--storage", str(store),
+                  cwd=tmp_path, api=prefect_api)
+    evaluations = store / "gone" / "evaluations"
+    deadline = time.monotonic() + 600
+    while not _records(evaluations) and run.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _records(evaluations), run.communicate()
+    shutil.rmtree(store)
+    out, err = run.communicate(timeout=600)
+    assert run.returncode != 0, out + err
+    assert "Traceback" not in out + err, out + err
+    lines = _problem_lines(err)
+    assert len(lines) == 1 and "storage fault: " in lines[0], err
+    assert str(store) in lines[0] and "restore or recreate the store's folder" in lines[0]
+    assert not store.exists()  # no new, empty store started under the same path
