@@ -30,6 +30,7 @@ from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from hmcore.cases import load_case
 from storage import ArtifactStore
+from storage.lock import NameHeldError, NameKind, NameLock
 from tasks.case import deck_file_hashes, prepare_deck
 from tasks.ensemble import (
     ensemble_settings,
@@ -82,48 +83,57 @@ def ensemble_flow(case: str = "synthetic", workers: Annotated[int, Field(ge=1)] 
     except USER_ERRORS as exc:
         return refused(exc)
     tag_flow_run("hmflow", "ensemble", f"case:{loaded.name}")
-    case_version = prepare_deck(loaded, case, storage, campaign)
-    try:  # a name bound to another case or ensemble: one clear line
-        check_campaign_settings(storage, campaign, ensemble_settings(
-            loaded, case_version, deck_file_hashes(loaded)))
-    except ValueError as exc:
+    lock = NameLock(storage, campaign, NameKind.ENSEMBLE)  # a deployment's run, too
+    try:
+        lock.acquire()
+    except NameHeldError as exc:
         return refused(exc)
-    setup = prepare_ensemble(loaded)
-    ensemble = prior_step(loaded, setup, storage, campaign, case_version)
-    iterations = len(loaded.ensemble.alphas)
-    progress = Progress(campaign, loaded.ensemble.size * (iterations + 1))
-    planned: dict[int, list[int]] = {}
-    with make_runner(task_runner, workers, dask_address, loaded.cluster) as runner:
-        for i in range(iterations + 1):  # the last round runs the posterior
-            jobs = member_jobs(loaded, ensemble, i, setup.layout)
-            planned[i] = [j.index for j in jobs]
-            done = member_records(storage, campaign, i)
-            if done:
-                logger.info(f"{campaign} ensemble {i}: {len(done)} of {len(jobs)} members "
-                            "already journaled")
-            progress.update(list(done.values()))
-            futures = submit_members(runner, loaded, setup, ensemble, i, jobs, storage,
-                                     campaign)
-            for f in futures:
-                progress.update([f.result()])
-            if i == iterations:
-                break
-            ensemble = update_step(loaded, setup, ensemble, member_records(storage, campaign, i),
-                                   i, storage, campaign)
-            if isinstance(ensemble, str):  # too few members ran: the reason, in one line
-                return stopped(ensemble)
-    forecast = forecast_step(loaded, setup.observations, storage, campaign, iterations,
-                             planned)
-    report = ensemble_report(storage, campaign)
-    doc = forecast.read_json("summary.json")
-    line = (f"ensemble {campaign}: {loaded.ensemble.size} members, {iterations} "
-            f"assimilation(s), {doc['runs']} runs ({doc['failed']} failed); "
-            f"{doc['headline'] or 'no forecast (no member ran to the end)'}")
-    logger.info(line)
-    return {"campaign": campaign, "storage": storage, "posterior": ensemble.ref(),
-            "forecast": forecast.ref(), "runs": doc["runs"], "failed": doc["failed"],
-            "report": report.ref(), "report_html": str(report.file("report.html")),
-            "summary": line}
+    try:
+        case_version = prepare_deck(loaded, case, storage, campaign)
+        try:  # a name bound to another case or ensemble: one clear line
+            check_campaign_settings(storage, campaign, ensemble_settings(
+                loaded, case_version, deck_file_hashes(loaded)))
+        except ValueError as exc:
+            return refused(exc)
+        setup = prepare_ensemble(loaded)
+        ensemble = prior_step(loaded, setup, storage, campaign, case_version)
+        iterations = len(loaded.ensemble.alphas)
+        progress = Progress(campaign, loaded.ensemble.size * (iterations + 1))
+        planned: dict[int, list[int]] = {}
+        with make_runner(task_runner, workers, dask_address, loaded.cluster) as runner:
+            for i in range(iterations + 1):  # the last round runs the posterior
+                jobs = member_jobs(loaded, ensemble, i, setup.layout)
+                planned[i] = [j.index for j in jobs]
+                done = member_records(storage, campaign, i)
+                if done:
+                    logger.info(f"{campaign} ensemble {i}: {len(done)} of {len(jobs)} members "
+                                "already journaled")
+                progress.update(list(done.values()))
+                futures = submit_members(runner, loaded, setup, ensemble, i, jobs, storage,
+                                         campaign)
+                for f in futures:
+                    progress.update([f.result()])
+                if i == iterations:
+                    break
+                ensemble = update_step(loaded, setup, ensemble,
+                                       member_records(storage, campaign, i), i, storage,
+                                       campaign)
+                if isinstance(ensemble, str):  # too few members ran: the reason, in one line
+                    return stopped(ensemble)
+        forecast = forecast_step(loaded, setup.observations, storage, campaign, iterations,
+                                 planned)
+        report = ensemble_report(storage, campaign)
+        doc = forecast.read_json("summary.json")
+        line = (f"ensemble {campaign}: {loaded.ensemble.size} members, {iterations} "
+                f"assimilation(s), {doc['runs']} runs ({doc['failed']} failed); "
+                f"{doc['headline'] or 'no forecast (no member ran to the end)'}")
+        logger.info(line)
+        return {"campaign": campaign, "storage": storage, "posterior": ensemble.ref(),
+                "forecast": forecast.ref(), "runs": doc["runs"], "failed": doc["failed"],
+                "report": report.ref(), "report_html": str(report.file("report.html")),
+                "summary": line}
+    finally:
+        lock.release()
 
 
 def stopped(message: str):
