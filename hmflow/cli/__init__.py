@@ -8,6 +8,7 @@ what it returns; one module per command group:
 * :mod:`~hmflow.cli.bench`: ``bench``; :mod:`~hmflow.cli.deploy`: ``deploy``
 * :mod:`~hmflow.cli.diagnose`: ``diagnose``
 * :mod:`~hmflow.cli.scenarios`: ``hide``, ``reveal``
+* :mod:`~hmflow.cli.screen`: ``screen`` (sensitivity screening)
 
 :mod:`~hmflow.cli.common` holds the Typer app and what the commands share,
 :mod:`~hmflow.cli.flowrun` what starting a flow from the terminal takes. Importing the package
@@ -20,6 +21,7 @@ from hmflow.cli.common import app, main
 # each module registers its commands when imported: in this order, the order `hmflow --help`
 # lists them
 from hmflow.cli import case, campaign, ensemble, bench, deploy, diagnose, scenarios  # noqa: F401
+from hmflow.cli import screen  # noqa: F401
 # isort: on
 
 __all__ = ["app", "main"]
