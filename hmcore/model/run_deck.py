@@ -324,10 +324,13 @@ def _table_records(body: str) -> list[list[str]]:
 
 
 def _multiply_block(mults: list[Multiply | FaultMultiplier | RegionTransmissibility]) -> str:
-    """The GRID-end block: MULTIPLY (boxes, everywhere), MULTIREG (regions), MULTFLT (faults),
-    MULTREGT (between regions)."""
-    grid = "".join(m.record() + "\n" for m in mults
-                   if isinstance(m, Multiply) and m.region is None)
+    """The GRID-end block: MULTIPLY (everywhere, then boxes), MULTIREG (regions), MULTFLT
+    (faults), MULTREGT (between regions). The records without a box come first: a MULTIPLY
+    record whose box is defaulted takes the box of the record before it (Eclipse's rule, which
+    OPM follows), so a global factor written after a boxed one would act in that box only."""
+    grid = "".join(m.record() + "\n" for m in sorted(
+        (m for m in mults if isinstance(m, Multiply) and m.region is None),
+        key=lambda m: m.box is not None))
     regions = "".join(m.region_records() for m in mults
                       if isinstance(m, Multiply) and m.region is not None)
     faults = "".join(m.records() for m in mults if isinstance(m, FaultMultiplier))
