@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from conftest import cli_env
+from typer.testing import CliRunner
 
 from hmcore.calibration.sensitivity import (
     ScreenMethod,
@@ -33,6 +34,7 @@ from hmcore.cases import load_case
 from hmcore.model.parameters import Parameter, ParameterSpace
 from hmcore.model.run_deck import Multiply, _multiply_block
 from hmcore.model.screened_case import free_name, write_screened
+from hmflow.cli import app
 from storage import ArtifactStore, EvaluationJournal
 
 ACTIVE = ("permx_mult", "skin")
@@ -245,3 +247,20 @@ def test_a_global_multiplier_is_written_before_the_boxed_ones():
     records = [line.split() for line in block.splitlines() if line.startswith(" '")]
     assert [len(r) for r in records] == [3, 3, 9, 9]  # no box, no box, then the boxed ones
     assert records[0][:2] == ["'PERMX'", "0.5"] and records[1][:2] == ["'PERMY'", "0.5"]
+
+
+def test_the_command_refuses_bad_input_before_prefect_or_any_run(tmp_path, small_case,
+                                                                restore_env):
+    """A budget too small for Sobol' on 8 parameters: exit 2, one line naming the option and the
+    minimum, nothing stored (the other refusals' lines: the unit test above)."""
+    shutil.copytree(small_case.parent, tmp_path / "case", ignore=shutil.ignore_patterns("truth*"))
+    case = tmp_path / "case" / "eight.toml"
+    case.write_text(small_case.read_text() + EIGHT)
+    store = tmp_path / "store"
+    out = CliRunner().invoke(app, ["screen", "--case", str(case), "--method", "sobol",
+                                   "--budget", "100", "--storage", str(store)],
+                             env={"COLUMNS": "300"})
+    assert out.exit_code == 2
+    lines = [line for line in out.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--budget 100: " in lines[0] and "160" in lines[0], lines
+    assert not list(store.glob("*/evaluations"))
