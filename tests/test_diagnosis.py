@@ -961,7 +961,8 @@ def test_restart_from_the_deck_values_counts_when_only_the_candidate_makes_the_g
     assert any(h["note"].startswith("restart") for h in conf["history"])
     from hmcore.diagnosis.report import markdown_report
 
-    row = next(ln for ln in markdown_report(doc).splitlines() if ln.startswith("| well_skin:PROD3"))
+    recalibrated = markdown_report(doc).split("Recalibrated candidates", 1)[1]
+    row = next(ln for ln in recalibrated.splitlines() if ln.startswith("| well_skin:PROD3"))
     assert "accepted: SSR" in row
     # restarts off (a negative margin: no global counts as at its bound)
     doc = diagnose(case, sim.evaluate_batch, settings=_restart_settings(near_bound=-1.0))

@@ -162,7 +162,7 @@ def test_the_flow_honours_workers_kinds_and_the_task_runner(tmp_path, monkeypatc
     seen: dict = {}
 
     class Runner:
-        def __init__(self, kind, workers, address):
+        def __init__(self, kind, workers, address, cluster=None):  # issue 43: the case's [cluster]
             seen["runner"] = (kind, workers, address)
 
         def __enter__(self):
