@@ -34,6 +34,7 @@ from hmcore.calibration.sensitivity import (
     default_budget,
     default_screen_name,
     design,
+    oat_centre,
     responses_of,
     screen_problems,
 )
@@ -62,22 +63,23 @@ def jobs_of(actions: np.ndarray, space, workers: int) -> list[Job]:
 def screen_flow(case: str = "synthetic", method: str = "morris", budget: int | None = None,
                 workers: int = 2, seed: int = 0, storage: str = DEFAULT_STORAGE,
                 screen: str | None = None, task_runner: Runner = "threads",
-                dask_address: str | None = None) -> dict:
+                dask_address: str | None = None, centre: str = "prior") -> dict:
     """Screen ``case``'s scalar parameters with ``method`` (oat, morris, sobol) in ``budget``
     simulator calls (default: the method's, :func:`~hmcore.calibration.sensitivity.
-    default_budget`), ``workers`` at a time; the same ``screen`` name resumes."""
+    default_budget`), ``workers`` at a time; the same ``screen`` name resumes. ``centre``:
+    where OAT starts, ``prior`` (the middle of the box) or ``deck`` (the deck's own values)."""
     logger = get_run_logger()
     try:
         storage = str(Path(storage).expanduser().resolve())
         loaded = load_case(case)
-        problems = screen_problems(str(loaded.source), loaded.space.dim, method, budget)
+        problems = screen_problems(str(loaded.source), loaded.space.dim, method, budget, centre)
         if problems:
             raise ValueError("; ".join(problems))
     except USER_ERRORS as exc:
         return refused(exc)
     kind = ScreenMethod(method)
     budget = budget or default_budget(kind, loaded.space.dim)
-    plan = design(kind, loaded.space, budget, seed)
+    plan = design(kind, loaded.space, budget, seed, oat_centre(loaded, centre))
     name = screen or default_screen_name(loaded.name, method, seed)
     tag_flow_run("hmflow", "screen", f"case:{loaded.name}", f"method:{method}")
     lock = NameLock(storage, name, NameKind.CAMPAIGN)
@@ -90,7 +92,7 @@ def screen_flow(case: str = "synthetic", method: str = "morris", budget: int | N
         try:
             check_campaign_settings(storage, name, {
                 "case_artifact": case_version.ref(), "agent": f"screen-{method}", "seed": seed,
-                "budget": budget, "screen_version": SCREEN_VERSION,
+                "budget": budget, "screen_version": SCREEN_VERSION, "centre": plan.centre,
                 "scoring_version": SCORING_VERSION, "objective": loaded.misfit.objective})
         except ValueError as exc:
             return refused(exc)

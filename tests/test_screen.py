@@ -28,6 +28,7 @@ from hmcore.calibration.sensitivity import (
     choose,
     design,
     minimum_budget,
+    oat_centre,
     screen_problems,
 )
 from hmcore.cases import load_case
@@ -274,3 +275,17 @@ def test_the_designs_and_estimators_leave_numpy_global_random_state_alone():
         plan = design(ScreenMethod(method), space, budget, seed=7)
         analyse(plan, pd.DataFrame({"objective": known(np.c_[plan.unit, plan.unit][:, :6])}))
     assert np.array_equal(np.random.get_state()[1], before)
+
+
+def test_oat_starts_from_the_deck_values_when_asked(small_case):
+    """``--centre deck``: OAT's centre is the deck's own values (multipliers 1, the deck's skin
+    0), clipped into the box; the prior centre otherwise."""
+    case = load_case(str(small_case))  # the five reference parameters
+    values = oat_centre(case, "deck")
+    assert values["permx_mult"] == pytest.approx(1.0) and values["skin"] == pytest.approx(0.0)
+    plan = design(ScreenMethod.OAT, case.space, 2 * case.space.dim + 1, 0, values)
+    start = case.space.to_values(plan.actions[0])
+    assert start["permx_mult"] == pytest.approx(1.0) and start["skin"] == pytest.approx(0.0)
+    assert plan.describe()["centre"] == "deck"
+    assert oat_centre(case, "prior") is None
+    assert screen_problems("c.toml", 5, "morris", None, "deck")[0].startswith("--centre deck")

@@ -3,7 +3,7 @@
 Three methods, the designs and estimators of the last two from SALib (never written here):
 
 * ``oat``: one at a time from the prior centre (the middle of the box in the case's own scaling,
-  log-aware): the centre, then each parameter alone to its low and its high bound; 2d + 1
+  log-aware), or from the deck's own values (``--centre deck``): the centre, then each parameter alone to its low and its high bound; 2d + 1
   calls. Its importance is the *swing* ``|y(high) - y(low)|``, drawn as a tornado.
 * ``morris``: elementary effects (``SALib.sample.morris`` / ``SALib.analyze.morris``), ``r``
   trajectories of d + 1 points on :data:`MORRIS_LEVELS` levels, ``r = budget // (d + 1)``;
@@ -42,6 +42,7 @@ from SALib.analyze import sobol as sobol_analyze
 from SALib.sample import morris as morris_sample
 from SALib.sample import sobol as sobol_sample
 
+from hmcore.model.deck_values import base_values
 from hmcore.model.parameters import ParameterSpace
 from hmcore.scoring.observations import ObservationSet
 
@@ -66,6 +67,14 @@ class ScreenMethod(StrEnum):
     OAT = "oat"
     MORRIS = "morris"
     SOBOL = "sobol"
+
+
+class Centre(StrEnum):
+    """Where OAT starts: the prior centre (the middle of the box in the case's scaling) or the
+    deck's own values (:func:`hmcore.model.deck_values.base_values`)."""
+
+    PRIOR = "prior"
+    DECK = "deck"
 
 
 IMPORTANCE = {ScreenMethod.OAT: "swing", ScreenMethod.MORRIS: "mu_star",
@@ -118,6 +127,7 @@ class Design:
     levels: int | None = None
     trajectories: int | None = None
     base_n: int | None = None
+    centre: str = Centre.PRIOR.value
 
     @property
     def actions(self) -> np.ndarray:
@@ -129,7 +139,16 @@ class Design:
 
     def describe(self) -> dict:
         return {"method": self.method.value, "calls": self.calls, "seed": self.seed,
-                "levels": self.levels, "trajectories": self.trajectories, "base_n": self.base_n}
+                "levels": self.levels, "trajectories": self.trajectories, "base_n": self.base_n,
+                **({"centre": self.centre} if self.method is ScreenMethod.OAT else {})}
+
+
+def oat_centre(case, centre: str) -> dict[str, float] | None:
+    """OAT's starting values in ``case``: None for the prior centre, the deck's own values
+    (:func:`~hmcore.model.deck_values.base_values`) for ``deck``."""
+    if centre != Centre.DECK.value:
+        return None
+    return base_values(case.info, case.space)
 
 
 def salib_problem(space: ParameterSpace) -> dict:
@@ -137,19 +156,24 @@ def salib_problem(space: ParameterSpace) -> dict:
     return {"num_vars": space.dim, "names": list(space.names), "bounds": [[0.0, 1.0]] * space.dim}
 
 
-def design(method: ScreenMethod, space: ParameterSpace, budget: int, seed: int) -> Design:
-    """The screening's points within ``budget`` (ValueError when it is too small)."""
+def design(method: ScreenMethod, space: ParameterSpace, budget: int, seed: int,
+           centre: dict[str, float] | None = None) -> Design:
+    """The screening's points within ``budget`` (ValueError when it is too small). ``centre``:
+    OAT's starting values (the deck's own, clipped into the box); default the prior centre."""
     problem_text = budget_problem(method, space.dim, budget)
     if problem_text:
         raise ValueError(problem_text)
     problem = salib_problem(space)
     d = space.dim
     if method is ScreenMethod.OAT:
-        unit = np.full((2 * d + 1, d), 0.5)
+        start = np.full(d, 0.5) if centre is None else \
+            np.clip((space.to_action(centre) + 1.0) / 2.0, 0.0, 1.0)
+        unit = np.tile(start, (2 * d + 1, 1))
         for i in range(d):
             unit[1 + 2 * i, i] = 0.0
             unit[2 + 2 * i, i] = 1.0
-        return Design(method, unit, problem, seed)
+        return Design(method, unit, problem, seed,
+                      centre=(Centre.PRIOR if centre is None else Centre.DECK).value)
     if method is ScreenMethod.MORRIS:
         r = budget // (d + 1)
         unit = morris_sample.sample(problem, r, num_levels=MORRIS_LEVELS,
@@ -272,7 +296,8 @@ def choose(table: pd.DataFrame, method: ScreenMethod, names: list[str],
     return Choice((), tuple(names), "", "no overall response could be ranked (failed calls)")
 
 
-def screen_problems(source: str, dim: int, method: str, budget: int | None) -> list[str]:
+def screen_problems(source: str, dim: int, method: str, budget: int | None,
+                    centre: str = Centre.PRIOR.value) -> list[str]:
     """Every reason to refuse a screening before any simulation, one line each with the file
     and key (or the option) at fault: an unknown method, a case without scalar parameters, a
     budget too small for the method."""
@@ -281,6 +306,12 @@ def screen_problems(source: str, dim: int, method: str, budget: int | None) -> l
     if method not in known:
         problems.append(f"--method {method}: unknown screening method; use one of "
                         f"{', '.join(known)}")
+    if centre not in [c.value for c in Centre]:
+        problems.append(f"--centre {centre}: use prior (the middle of each parameter's box) or "
+                        "deck (the deck's own values)")
+    elif centre != Centre.PRIOR.value and method != ScreenMethod.OAT.value:
+        problems.append(f"--centre {centre}: only OAT starts from a centre; Morris and Sobol' "
+                        "sample the whole box")
     if dim == 0:
         problems.append(f"{source} key 'parameters': no scalar parameter to screen; add "
                         "[[parameters]] tables (kind = \"multiply\", \"skin\", ...)")

@@ -60,7 +60,9 @@ def ranking_markdown(name: str, table: pd.DataFrame, method: ScreenMethod, desig
     first, then one per response."""
     lines = [f"# Screening {name}", "",
              f"Method **{method.value}**, {design['calls']} simulator calls, seed "
-             f"{design['seed']}" + (f", {design['trajectories']} trajectories on "
+             f"{design['seed']}" + (f", from the {design['centre']} centre"
+                                    if design.get("centre") else "")
+             + (f", {design['trajectories']} trajectories on "
                                     f"{design['levels']} levels" if design.get("trajectories")
                                     else "")
              + (f", Sobol' base sample N = {design['base_n']}" if design.get("base_n") else "")
@@ -88,7 +90,7 @@ def tornado(table: pd.DataFrame, method: ScreenMethod, response: str) -> bytes:
         ax.barh(y, rows["low"], color="tab:blue", label="at its low bound")
         ax.barh(y, rows["high"], color="tab:orange", label="at its high bound")
         ax.axvline(0.0, color="black", lw=0.8)
-        ax.set_xlabel("change from the prior centre")
+        ax.set_xlabel("change from the centre")
     elif method is ScreenMethod.MORRIS:
         ax.barh(y, rows["mu_star"], xerr=rows["mu_star_conf"], color="tab:blue", label="mu*")
         ax.plot(rows["sigma"], list(y), "k|", ms=12, label="sigma")

@@ -52,6 +52,9 @@ def screen(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                                                   "(default CASE-screen-METHOD-seedS)"),
            task_runner: str = typer.Option("threads", "--task-runner", help=RUNNER_HELP),
            dask_address: Optional[str] = typer.Option(None, "--dask-address", help=DASK_HELP),
+           centre: str = typer.Option("prior", "--centre", help="Where oat starts: prior (the "
+                                      "middle of each parameter's box, log-aware) or deck (the "
+                                      "deck's own values, clipped into the box)"),
            verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Screen the case's parameters: rank them per well response and on the misfit, draw a
     tornado per response, and write a new case file with those that matter switched on."""
@@ -66,7 +69,7 @@ def screen(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
 
     storage = folder("--storage", storage).resolve()
     c = load_case(case)
-    refuse(screen_problems(str(c.source), c.space.dim, method, budget))
+    refuse(screen_problems(str(c.source), c.space.dim, method, budget, centre))
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     check_inputs(None, None, workers, task_runner)
     calls = budget or default_budget(ScreenMethod(method), c.space.dim)
@@ -85,7 +88,8 @@ def screen(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                    total=calls, initial={"best": "-"}):
             result = screen_flow(case=str(case), method=method, budget=budget, workers=workers,
                                  seed=seed, storage=str(storage), screen=name,
-                                 task_runner=task_runner, dask_address=dask_address)
+                                 task_runner=task_runner, dask_address=dask_address,
+                                 centre=centre)
     except KeyboardInterrupt:
         console.print(f"screening [bold]{name}[/] stopped; the same command resumes it")
         raise
