@@ -146,8 +146,8 @@ def publish(storage: str, name: str, loaded, case_ref: dict, plan, records: list
               f"switched on: {', '.join(choice.chosen) or 'none'}; rule: {choice.rule}"]
     case_file = write_screened(source, loaded.space.parameters, choice.chosen, header)
     markdown = ranking_markdown(name, table, plan.method, plan.describe(), choice.rule,
-                                choice.chosen, str(case_file), skipped)
-    pngs = figures(table, plan.method)
+                                choice.chosen, str(case_file), skipped, loaded.misfit.objective)
+    pngs = figures(table, plan.method, loaded.misfit.objective)
     doc = {"screening": name, "method": plan.method.value, "design": plan.describe(),
            "chosen": list(choice.chosen), "dropped": list(choice.dropped),
            "rule": choice.rule, "ranked_on": choice.response, "case_file": str(case_file),

@@ -35,6 +35,7 @@ from hmcore.cases import load_case
 from hmcore.model.parameters import Parameter, ParameterSpace
 from hmcore.model.run_deck import Multiply, _multiply_block
 from hmcore.model.screened_case import free_name, write_screened
+from hmcore.reporting.screening import figures, ranking_markdown, report_html
 from hmflow.cli import app
 from storage import ArtifactStore, EvaluationJournal
 
@@ -289,3 +290,22 @@ def test_oat_starts_from_the_deck_values_when_asked(small_case):
     assert plan.describe()["centre"] == "deck"
     assert oat_centre(case, "prior") is None
     assert screen_problems("c.toml", 5, "morris", None, "deck")[0].startswith("--centre deck")
+
+
+@pytest.mark.parametrize("method,budget", [("oat", 9), ("morris", 25), ("sobol", 96)])
+def test_the_page_has_a_chart_per_response_and_the_rule(method, budget):
+    space = space_of(4)
+    plan = design(ScreenMethod(method), space, budget, seed=1)
+    y = 5.0 * plan.unit[:, 0] + plan.unit[:, 2]
+    table = analyse(plan, pd.DataFrame({"objective": y, "E": y, "misfit:P1:WBHP": -y,
+                                        "end:P1:WOPR": np.ones_like(y)}))
+    choice = choose(table, ScreenMethod(method), space.names)
+    pngs = figures(table, ScreenMethod(method), "likelihood")
+    assert list(pngs) == ["tornado__objective.png", "tornado__E.png",
+                          "tornado__misfit__P1__WBHP.png"]  # a constant response: no chart
+    assert all(b.startswith(b"\x89PNG") for b in pngs.values())
+    md = ranking_markdown("s", table, ScreenMethod(method), plan.describe(), choice.rule,
+                          choice.chosen, "c.screened.toml", ["end:P1:WOPR"], "likelihood")
+    assert choice.rule in md and "end:P1:WOPR" in md and "(likelihood)" in md
+    page = report_html(md, pngs)
+    assert page.count("data:image/png;base64,") == 3 and "<table>" in page

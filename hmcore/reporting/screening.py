@@ -31,7 +31,8 @@ def response_title(response: str, objective: str = "") -> str:
     """``misfit:PROD1:WBHP`` -> ``PROD1 WBHP: whitened misfit``, and so on; ``objective``: the
     case's objective's name (likelihood or E)."""
     if response in OVERALL:
-        return {"objective": f"the case's objective {objective}".rstrip(),
+        return {"objective": f"the case's objective ({objective})" if objective
+                else "the case's objective",
                 "E": "misfit E"}[response]
     kind, well, quantity = response.split(":", 2)
     what = {"misfit": "whitened misfit (mean square, fitted history)",
@@ -55,7 +56,7 @@ def markdown_table(table: pd.DataFrame, method: ScreenMethod, response: str) -> 
 
 def ranking_markdown(name: str, table: pd.DataFrame, method: ScreenMethod, design: dict,
                      rule: str, chosen: tuple[str, ...], case_file: str | None,
-                     skipped: list[str]) -> str:
+                     skipped: list[str], objective: str = "") -> str:
     """The screening's Markdown: what was run, the rule and its choice, the overall tables
     first, then one per response."""
     lines = [f"# Screening {name}", "",
@@ -76,11 +77,13 @@ def ranking_markdown(name: str, table: pd.DataFrame, method: ScreenMethod, desig
     responses = list(dict.fromkeys(table.response))
     ordered = [r for r in OVERALL if r in responses] + [r for r in responses if r not in OVERALL]
     for response in ordered:
-        lines += [f"## {response_title(response)}", "", markdown_table(table, method, response)]
+        lines += [f"## {response_title(response, objective)}", "",
+                  markdown_table(table, method, response)]
     return "\n".join(lines)
 
 
-def tornado(table: pd.DataFrame, method: ScreenMethod, response: str) -> bytes:
+def tornado(table: pd.DataFrame, method: ScreenMethod, response: str,
+            objective: str = "") -> bytes:
     """One response's tornado (OAT) or importance bars (Morris, Sobol'), strongest on top."""
     rows = table[table.response == response].iloc[::-1]
     fig = Figure(figsize=(6.0, 0.35 * len(rows) + 1.2))
@@ -92,15 +95,17 @@ def tornado(table: pd.DataFrame, method: ScreenMethod, response: str) -> bytes:
         ax.axvline(0.0, color="black", lw=0.8)
         ax.set_xlabel("change from the centre")
     elif method is ScreenMethod.MORRIS:
-        ax.barh(y, rows["mu_star"], xerr=rows["mu_star_conf"], color="tab:blue", label="mu*")
+        ax.barh(y, rows["mu_star"], xerr=rows["mu_star_conf"], color="tab:blue",
+                label="mu* (95 % bootstrap interval)")
         ax.plot(rows["sigma"], list(y), "k|", ms=12, label="sigma")
         ax.set_xlabel("mu* (mean |elementary effect|)")
     else:
-        ax.barh(y, rows["ST"], xerr=rows["ST_conf"], color="tab:blue", label="ST")
+        ax.barh(y, rows["ST"], xerr=rows["ST_conf"], color="tab:blue",
+                label="ST (95 % interval)")
         ax.barh(y, rows["S1"].clip(lower=0), height=0.4, color="tab:orange", label="S1")
         ax.set_xlabel("Sobol' index")
     ax.set_yticks(list(y), rows["parameter"])
-    ax.set_title(response_title(response), fontsize=9)
+    ax.set_title(response_title(response, objective), fontsize=9)
     ax.legend(fontsize=7, loc="lower right")
     return png(fig)
 
@@ -109,11 +114,11 @@ def figure_name(response: str) -> str:
     return "tornado__" + response.replace(":", "__") + ".png"
 
 
-def figures(table: pd.DataFrame, method: ScreenMethod) -> dict[str, bytes]:
+def figures(table: pd.DataFrame, method: ScreenMethod, objective: str = "") -> dict[str, bytes]:
     """Every response's chart by its file name, the overall ones first."""
     responses = list(dict.fromkeys(table.response))
     ordered = [r for r in OVERALL if r in responses] + [r for r in responses if r not in OVERALL]
-    return {figure_name(r): tornado(table, method, r) for r in ordered}
+    return {figure_name(r): tornado(table, method, r, objective) for r in ordered}
 
 
 def report_html(markdown: str, pngs: dict[str, bytes]) -> str:
