@@ -107,17 +107,18 @@ def screen_flow(case: str = "synthetic", method: str = "morris", budget: int | N
         with make_runner(task_runner, workers, dask_address, loaded.cluster) as runner:
 
             def evaluate_batch(batch: list[Job]) -> list[dict]:
+                # the whole design at once: the runner keeps its W workers busy (a fixed design
+                # waits for no answer), and the progress moves call by call
                 futures = [runner.submit(simulate, simulate_parameters(
                     loaded, job, storage, name, seed, f"screen-{method}", observations))
                     for job in batch]
-                records = [f.result() for f in futures]
-                progress.update(records)
+                records = []
+                for future in futures:
+                    records.append(future.result())
+                    progress.update(records[-1:])
                 return records
 
-            records = []
-            for start in range(0, len(jobs), workers):  # W at a time: progress per batch
-                records += replay_or_evaluate(jobs[start:start + workers], done,
-                                              evaluate_batch, f"screen-{method}")
+            records = replay_or_evaluate(jobs, done, evaluate_batch, f"screen-{method}")
         return publish(storage, name, loaded, case_version.ref(), plan, records, observations)
     finally:
         lock.release()
