@@ -1,6 +1,7 @@
 """One process per name (issue 43): two real `hmflow run` processes on one campaign name, the
-second refused at once with the holder named while the first completes; a lock left by a
-process killed with SIGKILL taken over; a lock from another host respected. The lock's rules
+second refused at once with the holder named while the first completes; a lock from another
+host respected. (A lock left by a real run killed with SIGKILL, taken over by the same
+command: tests/test_signals.py, on the campaign it already kills.) The lock's rules
 on their own (storage.lock) without a simulator first, then the real commands on the small
 synthetic case (conftest.small_case) and the session's Prefect server."""
 
@@ -8,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -120,27 +120,4 @@ def test_a_second_run_on_one_name_is_refused_at_once_and_the_first_completes(
     assert first.returncode == 0, out1 + err1
     records = sorted((tmp_path / "store" / "same" / "evaluations").glob("*.json"))
     assert [p.name for p in records] == ["000000.json", "000001.json"]
-    assert not lock.exists()
-
-
-@pytest.mark.opm
-def test_a_lock_left_by_a_run_killed_with_sigkill_is_taken_over(tmp_path, small_case,
-                                                                 prefect_api):
-    args = ("run", "--case", str(small_case), "--agent", "random", "--budget", "2",
-            "--workers", "1", "--seed", "6", "--campaign", "killed", "--storage",
-            str(tmp_path / "store"))
-    first = _hmflow(*args, cwd=tmp_path, api=prefect_api)
-    lock = lock_path(tmp_path / "store", "killed")
-    deadline = time.monotonic() + 120
-    while not lock.exists() and first.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert lock.exists(), first.communicate()
-    os.killpg(first.pid, signal.SIGKILL)
-    first.wait(timeout=30)
-    assert read_holder(lock).pid == first.pid  # left behind
-    second = _hmflow(*args, cwd=tmp_path, api=prefect_api)
-    out, err = second.communicate(timeout=600)
-    assert second.returncode == 0, out + err
-    assert f"took over the lock of killed from pid {first.pid}" in " ".join(out.split())
-    assert len(list((tmp_path / "store" / "killed" / "evaluations").glob("*.json"))) == 2
     assert not lock.exists()

@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 from conftest import cli_env
 
+from storage.lock import lock_path, read_holder
+
 
 def _alive(pgid: int) -> list[str]:
     out = subprocess.run(["ps", "-eww", "-o", "pid=,pgid=,args="], capture_output=True,
@@ -57,7 +59,10 @@ def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaig
        Ctrl-C does: it exits without a traceback, its temporary server gone with it, the
        run's logs sent before it stopped;
     3. the same command on the session's server resumes from the journal: every call once,
-       nothing journaled simulated again."""
+       nothing journaled simulated again.
+
+    The name's lock (issue 43): left by the killed run, taken over with a warning by the
+    resumed one, released by SIGTERM and by the end."""
     store = tmp_path / "store"
     args = [sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
             "--agent", "random", "--budget", "40",
@@ -76,6 +81,8 @@ def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaig
     while time.time() < deadline and _alive(proc.pid):
         time.sleep(0.5)
     assert not _alive(proc.pid), _alive(proc.pid)  # no server, no simulator left behind
+    assert read_holder(lock_path(store, "sig")).pid == proc.pid  # its name's lock left behind
+    killed_pid = proc.pid
     killed = _journaled(journal)
     assert all(row["index"] == index for index, row in killed.items()), killed.keys()
 
@@ -91,6 +98,8 @@ def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaig
     out = log.read_text()
     assert proc.returncode != 0 and "Traceback" not in out, out[-3000:]
     assert f"resuming campaign sig: {len(killed)} calls already journaled" in out, out[-3000:]
+    # the lock of a process that no longer exists is taken over, with a warning (issue 43)
+    assert f"took over the lock of sig from pid {killed_pid}" in " ".join(out.split()), out[-3000:]
     assert "Error logging to API" not in out  # logs sent before its server stops
     time.sleep(3)
     assert not _alive(proc.pid), _alive(proc.pid)  # no server, no simulator left behind
@@ -112,6 +121,7 @@ def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaig
     rows = _journaled(journal)
     assert sorted(rows) == list(range(budget))
     assert all(rows[i] == row for i, row in before.items())  # nothing journaled is redone
+    assert not lock_path(store, "sig").exists()  # SIGTERM and the end released the name
 
 
 def _orphans(store) -> list[str]:
