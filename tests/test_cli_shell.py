@@ -14,6 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from flows.inputs import input_problems
+from flows.runners import RUNNERS
 from hmcore.calibration.registry import METHODS
 
 OWN = ("PREFECT_SERVER_ANALYTICS_ENABLED", "DO_NOT_TRACK", "PREFECT_LOGGING_LEVEL",
@@ -76,10 +77,10 @@ def _invoke(args: list[str]):
 def test_the_command_line_and_the_flows_check_one_rule_spelled_their_way(restore_env):
     """`--task-runner nope` is refused by the flows' own rule, named as the option."""
     flow_says = input_problems(task_runner="nope")
-    assert flow_says == ["task_runner must be one of ['threads', 'dask'], got 'nope'"]
+    assert flow_says == [f"task_runner must be one of {list(RUNNERS)}, got 'nope'"]
     out, text = _invoke(["diagnose", "--task-runner", "nope"])
     assert out.exit_code == 2 and "Traceback" not in out.output
-    assert "--task-runner must be one of ['threads', 'dask'], got 'nope'" in text
+    assert f"--task-runner must be one of {list(RUNNERS)}, got 'nope'" in text
     assert input_problems("nope") == [f"agent must be one of {list(METHODS)}, got 'nope'"]
     assert input_problems("sac-paper", 7, 2) == [
         ("agent sac-paper, budget 7, workers 2: sac-paper steps its 2 env copies together: the "

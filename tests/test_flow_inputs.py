@@ -24,7 +24,7 @@ print("STATE", state.type.value, "|", state.message)
     ("{tmp}/nowhere.toml", "random", 4, "threads", "nowhere.toml"),
     ("synthetic", "esmda", 3, "threads", "esmda needs an ensemble"),
     # a typed parameter (a choice in the UI's form) is refused by Prefect's own validation
-    ("synthetic", "random", 4, "spark", "task_runner: Input should be 'threads' or 'dask'"),
+    ("synthetic", "random", 4, "spark", "task_runner: Input should be 'threads', 'dask', 'slurm', 'pbs' or 'lsf'"),
     ("synthetic", "random", 0, "threads", "budget: Input should be greater than or equal to 1"),
 ])
 def test_a_bad_value_fails_the_run_with_one_clear_line(tmp_path, case, agent, budget, runner,

@@ -83,6 +83,8 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     from storage import ArtifactStore, EvaluationJournal, refuse_links
 
     storage = folder("--storage", storage)
+    if fork is not None:  # names only: refused before anything is written in the store
+        check_fork(fork, campaign, storage.resolve())
     if campaign is not None:  # the name known: refused before the case is read
         hold_name(storage.resolve(), fork or campaign, "campaign")
     c = load_case(case)  # clear errors before any simulator time or Prefect start-up
@@ -90,8 +92,6 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     check_cluster(c, task_runner)
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     check_inputs(agent, budget, workers, task_runner)
-    if fork is not None:
-        check_fork(fork, campaign, storage.resolve())
     name = campaign or default_campaign_name(c.name, agent, seed)
     storage = storage.resolve()
     forked_from = None
