@@ -50,6 +50,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from make_bench_cases import draw_valid_truth  # noqa: E402
 
+from hmcore.calibration.registry import method_version  # noqa: E402
 from hmcore.eclipse.deck_info import DeckInfo  # noqa: E402
 from hmcore.model.parameters import ParameterSpace  # noqa: E402
 from hmcore.model.run_deck import prepare_run_deck  # noqa: E402
@@ -214,6 +215,13 @@ def save(path: Path, results: dict, git_commit: bool) -> None:
                         "campaigns in " + path.name, "--", str(path)], cwd=REPO, check=False)
 
 
+def method_tag(method: str) -> str:
+    """The method as campaigns and the tables name it: with its version when it has had
+    several (``lm-v5``; the results of ``lm`` 4, from before the tag, say ``lm-v4``)."""
+    version = method_version(method)
+    return f"{method}-v{version}" if version > 1 else method
+
+
 def table(results: dict) -> str:
     """Per method, generator and level: medians over the truths (never: more than half
     missed), and the worst longest run above 5x."""
@@ -269,7 +277,8 @@ def main() -> None:
             for level in args.levels:
                 case = make_case(out, seed, generator, level)
                 for method in args.methods:
-                    name = f"{case.parent.name}-{method}-b{args.budget}-w{args.workers}"
+                    tag = method_tag(method)
+                    name = f"{case.parent.name}-{tag}-b{args.budget}-w{args.workers}"
                     found = figures(store, name, args.budget)
                     if found is None:
                         if args.max_campaigns is not None and ran >= args.max_campaigns:
@@ -286,7 +295,7 @@ def main() -> None:
                     if found is None:
                         raise RuntimeError(f"campaign {name} left no results in {store}")
                     results[name] = {"truth": seed, "generator": generator, "level": level,
-                                     "method": method, "budget": args.budget,
+                                     "method": tag, "budget": args.budget,
                                      "workers": args.workers, **found}
                     save(args.results, results, args.git_commit)
                     print(f"{name}: {json.dumps(found, default=str)}")

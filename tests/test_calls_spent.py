@@ -14,7 +14,7 @@ from hmcore.calibration.least_squares import AskTellLeastSquares
 from hmcore.calibration.loop import calibrate
 from hmcore.calibration.methods import make_proposer
 from hmcore.calibration.methods.base import Feedback, Proposal
-from hmcore.calibration.methods.lm import STALL_TRIALS, jacobian_base
+from hmcore.calibration.methods.lm import NEAR_SCALE, STALL_TRIALS, jacobian_base
 from hmcore.model.parameters import Parameter, ParameterSpace
 
 SPACE = ParameterSpace(parameters=(
@@ -140,6 +140,20 @@ def test_a_restart_starts_where_no_check_is_broken():
     free = BudgetedCalls(SPACE, batch_of(), 10)
     again = make_proposer("lm", SPACE.dim, 0, 2, 10)
     assert any(again._start(free)[0] > EDGE for _ in range(30))  # uniform without a check
+
+
+def test_restarts_alternate_near_the_best_call_and_anywhere_in_the_box():
+    """With a best call, the 1st, 3rd, ... restart starts within a few NEAR_SCALE of it (does
+    its basin hold a better point?), the 2nd, 4th, ... anywhere (is there another basin?)."""
+    calls = BudgetedCalls(SPACE, batch_of(), 10)
+    calls.run(np.array([[-0.6, 0.5], [0.9, -0.9]]))
+    best = np.asarray(calls.best()["action"])
+    proposer = make_proposer("lm", SPACE.dim, 0, 2, 10)
+    starts = np.array([proposer._start(calls) for _ in range(40)])
+    near = np.abs(starts[0::2] - best).max(axis=1)
+    far = np.abs(starts[1::2] - best).max(axis=1)
+    assert near.max() < 5 * NEAR_SCALE and np.median(near) < 2 * NEAR_SCALE, near
+    assert np.median(far) > 5 * NEAR_SCALE, far  # uniform on [-1, 1]^2: median about 0.9
 
 
 # ----------------------------------------------------------------------------- (2) no point twice

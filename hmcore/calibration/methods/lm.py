@@ -37,9 +37,13 @@ Calls are spent where they tell something (version 3):
   fails to run, when a trial repeats a simulated point, when an accepted trial lowers its sum
   of squares by less than :data:`STALL_FTOL` of it (a new Jacobian there would cost d calls
   for less), or after :data:`STALL_TRIALS` rejected trials in a row; with budget left, the
-  next descent starts from a uniform-random
-  point (the first starts at the box's centre) that breaks no pre-simulation check (up to
-  :data:`START_DRAWS` draws; the first draw when none passes).
+  next descent starts from a random point (the first starts at the box's centre) that breaks
+  no pre-simulation check (up to :data:`START_DRAWS` draws; the first draw when none passes).
+  The restarts alternate, the first near the best call so far (a normal draw of
+  :data:`NEAR_SCALE` around it: does the basin hold a better point the descent missed?), the
+  next anywhere in the box (uniform: is there another basin?), and so on (version 5; version
+  4's were all uniform, and a last restart far from a converged fit spent the campaign's
+  last calls at many times its starting misfit).
 
 The residuals are the campaign's objective's (version 4,
 :meth:`hmcore.calibration.objective.Objective.residuals`): the whitened ones under the
@@ -71,7 +75,10 @@ STALL_FTOL = 1e-3
 it ends the descent: on whitened residuals, a chi-square unit or less for a history of a
 thousand values, below what the noise lets a fit tell apart."""
 START_DRAWS = 20
-"""Uniform draws tried for a restart's start point that breaks no pre-simulation check."""
+"""Draws tried for a restart's start point that breaks no pre-simulation check."""
+NEAR_SCALE = 0.1
+"""Standard deviation, in action units (the box is [-1, 1] on each axis), of a near restart's
+start around the best call: two finite-difference steps, a twentieth of the box's width."""
 
 
 def residuals_of(record: dict) -> np.ndarray | None:
@@ -95,6 +102,8 @@ class LMDriver:
         self.rng = np.random.default_rng(seed)
         self.descents: list[dict] = []
         """Each descent's end: its point and cost (None when it failed to run), and why."""
+        self.restarts = 0
+        """Restarts drawn so far (even: near the best call, odd: anywhere in the box)."""
 
     def drive(self, calls: BudgetedCalls, workers: int) -> list[dict]:
         x0 = np.zeros(self.dim)
@@ -118,17 +127,26 @@ class LMDriver:
         return calls.records
 
     def _start(self, calls: BudgetedCalls) -> np.ndarray:
-        """A restart's start point: the first of :data:`START_DRAWS` uniform draws that
-        breaks no pre-simulation check (the first draw when none passes, or nothing is
-        known before a run)."""
-        first = self.rng.uniform(-1.0, 1.0, self.dim)
+        """A restart's start point: the first of :data:`START_DRAWS` draws that breaks no
+        pre-simulation check (the first draw when none passes, or nothing is known before a
+        run); near the best call on even restarts (when one ran), anywhere on odd ones."""
+        best = calls.best() if self.restarts % 2 == 0 else None
+        self.restarts += 1
+        centre = None if best is None else np.clip(np.asarray(best["action"], float), -1.0, 1.0)
+        first = self._draw(centre)
         if calls.precheck is None or not calls.kinds(first):
             return first
         for _ in range(START_DRAWS - 1):
-            x = self.rng.uniform(-1.0, 1.0, self.dim)
+            x = self._draw(centre)
             if not calls.kinds(x):
                 return x
         return first
+
+    def _draw(self, centre: np.ndarray | None) -> np.ndarray:
+        """One start point: normal around ``centre`` (clipped to the box), uniform without."""
+        if centre is None:
+            return self.rng.uniform(-1.0, 1.0, self.dim)
+        return np.clip(centre + self.rng.normal(0.0, NEAR_SCALE, self.dim), -1.0, 1.0)
 
 
 class Descent:
