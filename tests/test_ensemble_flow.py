@@ -1,7 +1,7 @@
 """The ensemble flow end to end with the real simulator and real Prefect, on a field version of
 the small synthetic case (conftest.small_case: 10 x 10 x 5 cells, 4 wells, 3 years): a PORO
 field drawn per layer with gstools and a PERMX (= PERMY) field from it, 8 members, 2
-assimilations. The simulator is OPM Flow behind a command template that logs every call and
+assimilations, the member runs on a two-worker Dask cluster. The simulator is OPM Flow behind a command template that logs every call and
 fails member 5 of the prior (a real non-zero exit), so the flow must leave it out of the
 updates and go on; the run's report (maps, wells, misfit boxes, fans) is stored and rebuilt
 by ``hmflow report`` with no simulator call; and a run where every member fails stops with
@@ -9,6 +9,7 @@ one line."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import cli_env
+from test_cluster import DASK, _worker_pids, dask_cluster
 from test_ensemble_report import drawn
 
 from hmcore.cases import load_case
@@ -63,14 +65,24 @@ def field_case(folder: Path, small_case: Path, fail: str, ensemble: str) -> tupl
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory, small_case):
+    """The run every test here reads, on a Dask cluster (a `dask scheduler` and two `dask
+    worker` processes, tests/test_cluster.py's): the member runs go to the workers, as a
+    user's would with ``--task-runner dask``."""
     from flows.ensemble import ensemble_flow
 
+    if not DASK.exists():
+        pytest.skip("the dask command is not installed")
     tmp = tmp_path_factory.mktemp("ensemble")
     case, log = field_case(tmp / "case", small_case, f"i00-m{FAILED:04d}",
                            f"size = {SIZE}\nweights = [2.0, 1.0]\nmin_realizations = 4\n")
     storage = tmp / "store"
-    result = ensemble_flow(case=str(case), workers=2, storage=str(storage), campaign="e")
-    return {"case": case, "log": log, "store": ArtifactStore(storage), "result": result}
+    (tmp / "dask").mkdir()
+    with dask_cluster(tmp / "dask") as cluster:
+        pids = set(_worker_pids(cluster["address"]).values())
+        result = ensemble_flow(case=str(case), workers=2, storage=str(storage), campaign="e",
+                               task_runner="dask", dask_address=cluster["address"])
+    return {"case": case, "log": log, "store": ArtifactStore(storage), "result": result,
+            "worker_pids": pids}
 
 
 def ensembles(run) -> list[np.ndarray]:
@@ -109,6 +121,14 @@ def test_a_failed_member_is_recorded_with_its_kind_and_left_out_of_the_updates(r
         assert EvaluationJournal(store, "e", member_journal(i)).indices() == ok
     doc = store.latest("e", ensemble_step(1)).read_json("ensemble.json")
     assert doc["left_out_now"] == [FAILED] and doc["active"] == ok
+
+
+def test_every_member_runs_in_a_dask_worker(run):
+    """Run by the cluster's workers, not by the flow's process."""
+    records = [r for i in range(3) for r in EvaluationJournal(run["store"], "e",
+                                                             member_journal(i)).rows()]
+    assert len(records) == 22 and {r["host_pid"] for r in records} <= run["worker_pids"]
+    assert os.getpid() not in run["worker_pids"]
 
 
 def test_each_member_run_calls_the_simulator_once(run):

@@ -8,6 +8,7 @@ case with two fields, conftest.small_case)."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -75,5 +76,9 @@ def test_a_killed_ensemble_resumes_with_exactly_the_planned_members(tmp_path, sm
     records = EvaluationJournal(ArtifactStore(store), "k", member_journal(1)).rows()
     assert all(r["status"] != "FAIL" for r in records)
     assert ArtifactStore(store).latest("k", FORECAST_STEP) is not None
-    assert (f"ensemble k: {SIZE} members, 1 assimilation(s), {SIZE * ROUNDS} runs (0 failed)"
-            in " ".join(again.stdout.split()))
+    said = " ".join(again.stdout.split())
+    assert f"ensemble k: {SIZE} members, 1 assimilation(s), {SIZE * ROUNDS} runs (0 failed)" in said
+    # the command's last words: the spread each field kept (issue 41: does it collapse?)
+    for field in ("poro", "permx"):
+        assert re.search(rf"field {field}: the posterior keeps \d+% of the prior's spread",
+                         said), said
