@@ -1,9 +1,9 @@
-"""One process per name (issue 43): two real `hmflow run` processes on one campaign name, the
-second refused at once with the holder named while the first completes; a lock from another
-host respected. (A lock left by a real run killed with SIGKILL, taken over by the same
-command: tests/test_signals.py, on the campaign it already kills.) The lock's rules
-on their own (storage.lock) without a simulator first, then the real commands on the small
-synthetic case (conftest.small_case) and the session's Prefect server."""
+"""One process per name (issue 43): the lock's rules on their own (storage.lock), without a
+simulator: a live holder refuses a second taker, a dead or reused pid is stale, a lock from
+another host is respected. With real `hmflow run` processes (tests/test_signals.py, on the
+campaign it already kills and resumes): a lock left by a run killed with SIGKILL is taken
+over by the same command, and a second process on a running campaign's name is refused at
+once with the holder named while the first completes."""
 
 from __future__ import annotations
 
@@ -12,11 +12,9 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
-from conftest import cli_env
 
 from storage.lock import (
     LockState,
@@ -27,12 +25,6 @@ from storage.lock import (
     read_holder,
     state_of,
 )
-
-
-def _hmflow(*args: str, cwd: Path, api: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "hmflow.cli", *args], cwd=cwd,
-                            env=cli_env(api, COLUMNS="200"), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
 def _fake_lock(root: Path, name: str, **fields) -> Path:
@@ -90,34 +82,3 @@ def test_a_dead_or_reused_pid_is_stale_and_another_host_is_respected(tmp_path):
     with pytest.raises(NameHeldError, match="node-17.elsewhere, another host"):
         NameLock(tmp_path, "remote", NameKind.CAMPAIGN).acquire()
     assert read_holder(lock_path(tmp_path, "remote")).host == "node-17.elsewhere"
-
-
-@pytest.mark.opm
-def test_a_second_run_on_one_name_is_refused_at_once_and_the_first_completes(
-        tmp_path, small_case, prefect_api):
-    args = ("run", "--case", str(small_case), "--agent", "random", "--budget", "2",
-            "--workers", "2", "--seed", "5", "--campaign", "same", "--storage",
-            str(tmp_path / "store"))
-    first = _hmflow(*args, cwd=tmp_path, api=prefect_api)
-    lock = lock_path(tmp_path / "store", "same")
-    deadline = time.monotonic() + 120
-    while not lock.exists() and first.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert lock.exists(), first.communicate()
-    started = time.monotonic()
-    second = _hmflow(*args, cwd=tmp_path, api=prefect_api)
-    out2, err2 = second.communicate(timeout=60)
-    refused_in = time.monotonic() - started
-    assert second.returncode == 2, out2 + err2
-    # the issue asks for under 5 s; on 2 busy cores (the first run starting beside it) the
-    # refusal's own Python start-up takes 3-5.5 s, so the bound is generous here
-    assert refused_in < 10, refused_in
-    lines = [line for line in err2.splitlines() if line.strip()]
-    assert len(lines) == 1, err2
-    assert f"pid {first.pid} on host {socket.gethostname()}" in lines[0]
-    assert "Traceback" not in out2 + err2
-    out1, err1 = first.communicate(timeout=600)
-    assert first.returncode == 0, out1 + err1
-    records = sorted((tmp_path / "store" / "same" / "evaluations").glob("*.json"))
-    assert [p.name for p in records] == ["000000.json", "000001.json"]
-    assert not lock.exists()
