@@ -1,5 +1,6 @@
 """`hmflow bench` as a user types it: every method on a synthetic case with the real OPM
-Flow, a real Prefect server, real Parquet files; then a resumed benchmark. The default run
+Flow, a real Prefect server, real Parquet files; then the benchmark exported, unpacked on
+"another machine" and continued there with one more seed. The default run
 benchmarks the small synthetic case (the session's, see conftest.small_case) through the
 session's Prefect server: what is tested is the benchmark's bookkeeping, not the case."""
 
@@ -8,6 +9,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import tarfile
 from pathlib import Path
 
 import numpy as np
@@ -15,18 +17,20 @@ import pandas as pd
 import pytest
 from conftest import cli_env
 
+from flows.bench import bench_names
 from hmcore.calibration.methods import AGENTS
 from hmcore.reporting.benchmark import LEVELS, per_run, summary
+from storage import ArtifactStore
 
 pytestmark = pytest.mark.opm
 BUDGET, SEEDS = 4, 1  # 4: the smallest budget every method runs (ES-MDA: 2 members, twice);
-# one seed, then the resumed run adds a second
+# one seed, then the continued run adds a second
 METHODS = ("lm", "esmda")
 """The methods of the default run: a driver with Jacobian runs and an ensemble, the two ways a
 call is not one proposal (every method - all of :data:`hmcore.calibration.methods.AGENTS` -
 takes 7 min with 2 seeds, too much of CI's time: `-m slow` runs them all;
 tests/test_methods.py holds every method to its budget). A proposer ("random") was the third
-until 2026-11-28 (CI's suite time, issue 40); the resumed run adds a seed of ``RESUMED``."""
+until 2026-11-28 (CI's suite time, issue 40); the continued run adds a seed of ``RESUMED``."""
 RESUMED = "esmda"
 
 
@@ -56,8 +60,6 @@ def test_bench_runs_every_method_and_seed_with_exactly_the_budgeted_calls(tmp_pa
     assert set(calls[calls.method == "lm"].phase) >= {"jacobian"}
     assert set(calls[calls.method == "esmda"].phase) >= {"ensemble", "posterior"}
     # each campaign's journal holds the same calls as the table
-    from flows.bench import bench_names
-
     names = {ms: c for c, ms in bench_names("synthetic", list(methods), list(range(SEEDS)),
                                             "b")[2].items()}
     for (method, seed), n in counts.items():
@@ -82,48 +84,39 @@ def test_bench_runs_every_method_and_seed_with_exactly_the_budgeted_calls(tmp_pa
     assert calls[scored].worst_well_cmatch.between(0, 100).all()
     assert table.worst_well_cmatch_median.notna().any()
 
-    # a rerun with one more seed resumes: the done campaign is replayed, only the new seed
-    # runs (a method added later is another campaign the same way: -m slow's every-method run)
-    before = {p: p.stat().st_mtime_ns for p in (tmp_path / "store").glob("b-*-s0/evaluations/*")}
-    more = hmflow(*common, "--methods", RESUMED, "--seeds", str(SEEDS + 1),
-                  cwd=tmp_path, api=prefect_api)
-    assert more.returncode == 0, more.stdout[-3000:] + more.stderr[-3000:]
-    assert {p: p.stat().st_mtime_ns for p in before} == before   # nothing rewritten
-    newest = sorted((tmp_path / "store" / "b" / "benchmark").glob("v*"))[-1]
-    again = pd.read_parquet(newest / "calls.parquet")
-    assert set(again.method) == {RESUMED}
-    assert set(again.seed) == set(range(SEEDS + 1))
-    assert (again.groupby(["method", "seed"]).size() == BUDGET).all()
-    folder = tmp_path / "store" / next(iter(bench_names("synthetic", [RESUMED], [1],
-                                                       "b")[2]))
-    assert json.loads((folder / "campaign.json").read_text())["seed"] == 1
-
     # exported (benchmarks/export_bench.py) and unpacked into another store, as on another
-    # machine, the same command continues it: nothing is simulated, the same table
+    # machine, the same command with one more seed continues it: the done campaign is
+    # replayed (nothing simulated, nothing rewritten, the same rows), only the new seed runs
+    # (a method added later is another campaign the same way: -m slow's every-method run)
     export = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[1] / "benchmarks"
                                                  / "export_bench.py"), "--name", "b", "--storage",
                              str(tmp_path / "store"), "--out", str(tmp_path / "out")],
                             capture_output=True, text=True, timeout=300, check=False)
     assert export.returncode == 0, export.stderr[-3000:]
-    import tarfile
-
     other = tmp_path / "other-machine" / "store"
     other.mkdir(parents=True)
     with tarfile.open(tmp_path / "out" / "b" / "journals.tar.gz") as tar:
         tar.extractall(other, filter="data")
-    from storage import ArtifactStore
-
     bound = json.loads((other / "b" / "campaign.json").read_text())["case_artifact"]
     case = ArtifactStore(other).get(bound["campaign"], bound["step"], bound["version"])
     assert case.verify() == []  # the case the benchmark is bound to came along, intact
+    done = other / names[(RESUMED, 0)]
+    before = {p: p.stat().st_mtime_ns for p in done.glob("evaluations/*")}
     moved = hmflow(*common[:-4], "--storage", str(other), "--name", "b", "--methods",
                    RESUMED, "--seeds", str(SEEDS + 1), cwd=tmp_path / "other-machine",
                    api=prefect_api)
     assert moved.returncode == 0, moved.stdout[-3000:] + moved.stderr[-3000:]
-    assert not list(other.glob("*/runs"))  # no simulator call: every campaign was complete
-    there = pd.read_parquet(sorted((other / "b" / "benchmark").glob("v*"))[-1] / "calls.parquet")
-    pd.testing.assert_frame_equal(there[["method", "seed", "call", "E"]],
-                                  again[["method", "seed", "call", "E"]])
+    assert before and {p: p.stat().st_mtime_ns for p in before} == before  # nothing rewritten
+    assert not (done / "runs").exists()  # no simulator call: that campaign was complete
+    there = pd.read_parquet(max((other / "b" / "benchmark").glob("v*")) / "calls.parquet")
+    assert set(there.method) == {RESUMED} and set(there.seed) == set(range(SEEDS + 1))
+    assert (there.groupby(["method", "seed"]).size() == BUDGET).all()
+    key = ["method", "seed", "call", "E"]
+    pd.testing.assert_frame_equal(
+        there[there.seed == 0][key].sort_values("call").reset_index(drop=True),
+        calls[calls.method == RESUMED][key].sort_values("call").reset_index(drop=True))
+    folder = other / next(iter(bench_names("synthetic", [RESUMED], [1], "b")[2]))
+    assert json.loads((folder / "campaign.json").read_text())["seed"] == 1
     records = [json.loads(p.read_text()) for p in (folder / "evaluations").glob("*.json")]
     assert any(r.get("E_worst") is not None and r["E_worst"] >= 0 for r in records)
 
