@@ -28,13 +28,11 @@ from hmflow.cli.flowrun import (
     batch_runner,
     check_cluster,
     fit_workers,
-    flow_refused,
     hold_name,
-    is_storage_fault,
+    one_line_failures,
     progress_columns,
     quiet_storage_faults,
     start_api,
-    storage_fault,
 )
 from hmflow.console import Watch, bench_poll, prefect_environment
 
@@ -83,18 +81,12 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                   f"calls, {workers} workers, storage {storage}")
     quiet_storage_faults(storage)  # said in one line below, not as a traceback
     bench_name, _, campaigns = bench_names(c.name, chosen, list(range(seeds)), name)
-    try:
+    with one_line_failures(storage):
         with Watch(console, bench_poll(storage, campaigns, budget, workers, bench_name),
                    progress_columns("bench"),
                    total=len(campaigns) * budget, initial={"current": "starting"}):
             result = bench_flow(case=str(case), methods=chosen, seeds=list(range(seeds)),
                                 budget=budget, workers=workers, storage=str(storage), name=name,
                                 task_runner=task_runner, dask_address=dask_address)
-    except OSError as exc:
-        if not is_storage_fault(exc, storage):
-            raise
-        fail(storage_fault(exc, storage), soft_wrap=True)
-    except (ValueError, flow_refused()) as exc:
-        fail(str(exc))
     console.print(Path(result["summary_path"]).read_text(), highlight=False, soft_wrap=True)
     console.print(f"table: {result['summary_path']}\nplot:  {result['plot_path']}")

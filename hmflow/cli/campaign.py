@@ -35,13 +35,11 @@ from hmflow.cli.flowrun import (
     check_cluster,
     check_inputs,
     fit_workers,
-    flow_refused,
     hold_name,
-    is_storage_fault,
+    one_line_failures,
     progress_columns,
     quiet_storage_faults,
     start_api,
-    storage_fault,
 )
 from hmflow.console import Watch, campaign_poll, prefect_environment, status_text, summary_table
 
@@ -112,26 +110,22 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     console.print(f"storage: {escape(str(storage))}", soft_wrap=True, highlight=False)  # never broken
     quiet_storage_faults(storage)  # said in one line below, not as a traceback
     journal = EvaluationJournal(ArtifactStore(storage), name)
-    try:
-        done = len(journal.indices())
-        if done:  # (Prefect's INFO line saying so is not shown without --verbose)
-            console.print(f"resuming campaign {name}: {done} calls already journaled")
-        with Watch(console, campaign_poll(storage, name, budget), progress_columns("run"),
-                   total=budget, initial={"best": "-"}):
-            result = campaign_flow(case=str(case), agent=agent, budget=budget, workers=workers,
-                                   seed=seed, storage=str(storage), campaign=name,
-                                   task_runner=task_runner, dask_address=dask_address,
-                                   **({"forked_from": forked_from} if forked_from else {}))
-    except KeyboardInterrupt:
-        console.print(f"campaign [bold]{name}[/] stopped with {len(journal.indices())} calls "
-                      "journaled; the same command resumes it")
-        raise
-    except OSError as exc:
-        if not is_storage_fault(exc, storage):
+    with one_line_failures(storage):
+        try:
+            done = len(journal.indices())
+            if done:  # (Prefect's INFO line saying so is not shown without --verbose)
+                console.print(f"resuming campaign {name}: {done} calls already journaled")
+            with Watch(console, campaign_poll(storage, name, budget), progress_columns("run"),
+                       total=budget, initial={"best": "-"}):
+                result = campaign_flow(case=str(case), agent=agent, budget=budget,
+                                       workers=workers, seed=seed, storage=str(storage),
+                                       campaign=name, task_runner=task_runner,
+                                       dask_address=dask_address,
+                                       **({"forked_from": forked_from} if forked_from else {}))
+        except KeyboardInterrupt:
+            console.print(f"campaign [bold]{name}[/] stopped with {len(journal.indices())} "
+                          "calls journaled; the same command resumes it")
             raise
-        fail(storage_fault(exc, storage), soft_wrap=True)
-    except (ValueError, flow_refused()) as exc:
-        fail(str(exc))
     print_report(storage, result["campaign"], result)
     console.print(f"campaign [bold]{result['campaign']}[/] done; to print its report again:",
                   highlight=False)

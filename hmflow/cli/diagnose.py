@@ -30,13 +30,11 @@ from hmflow.cli.flowrun import (
     batch_runner,
     check_cluster,
     dask_problems,
-    flow_refused,
     hold_name,
-    is_storage_fault,
+    one_line_failures,
     progress_columns,
     quiet_storage_faults,
     start_api,
-    storage_fault,
 )
 from hmflow.console import Watch, diagnosis_poll, prefect_environment
 
@@ -99,19 +97,13 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
     quiet_storage_faults(storage)  # said in one line below, not as a traceback
     # what flows.diagnose.diagnose_command does, with a progress display until the flow ends
     poll = diagnosis_poll(storage, campaign or default_campaign_name(c.name))
-    try:
+    with one_line_failures(storage):
         with Watch(console, poll, progress_columns("diagnose" if budget else "diagnose-open"),
                    total=budget, initial={"step": "-"}):
             result = diagnose_flow(case=str(case), storage=str(storage), budget=budget,
                                    campaign=campaign, workers=workers, calibrated=calibrated,
                                    task_runner=task_runner, dask_address=dask_address,
                                    kinds=list(kind_list) if kind_list else None)
-    except OSError as exc:
-        if not is_storage_fault(exc, storage):
-            raise
-        fail(storage_fault(exc, storage), soft_wrap=True)
-    except (ValueError, flow_refused()) as exc:
-        fail(str(exc))
     print_diagnosis(result, console)
 
 

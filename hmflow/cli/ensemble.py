@@ -33,12 +33,10 @@ from hmflow.cli.flowrun import (
     check_cluster,
     check_inputs,
     fit_workers,
-    flow_refused,
     hold_name,
-    is_storage_fault,
+    one_line_failures,
     quiet_storage_faults,
     start_api,
-    storage_fault,
 )
 from hmflow.console import Watch, prefect_environment
 
@@ -90,18 +88,12 @@ def ensemble(case: str = typer.Option(..., "--case", help="Case TOML file with k
     columns = [TextColumn("[bold]member runs"), BarColumn(), TextColumn(
         "{task.completed}/{task.total}"), TextColumn("ensemble {task.fields[round]}"),
         TimeElapsedColumn()]
-    try:
+    with one_line_failures(storage):
         with Watch(console, member_poll(storage, name, rounds, spec.size), columns,
                    total=spec.size * rounds, initial={"round": "-"}):
             result = ensemble_flow(case=str(case), workers=workers, storage=str(storage),
                                    campaign=name, task_runner=task_runner,
                                    dask_address=dask_address)
-    except OSError as exc:
-        if not is_storage_fault(exc, storage):
-            raise
-        fail(storage_fault(exc, storage), soft_wrap=True)
-    except (ValueError, flow_refused()) as exc:
-        fail(str(exc))
     print_forecast(storage, name)
     print_spread(Path(result["report_html"]).with_name("report.json"))
     console.print(result["summary"], highlight=False, soft_wrap=True)

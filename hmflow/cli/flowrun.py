@@ -8,9 +8,11 @@ progress bar's columns.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import logging
 import os
 import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Optional
 
@@ -210,6 +212,21 @@ def _command_context():
         if ctx is not None:
             return ctx
     return None
+
+
+@contextlib.contextmanager
+def one_line_failures(storage: Path) -> Iterator[None]:
+    """Around a flow's run: a fault of the store's file system (:func:`storage_fault`), a
+    refused input (ValueError) or a flow that refused it (:func:`flow_refused`) ends the
+    command in one line, exit 2; anything else goes on up."""
+    try:
+        yield
+    except OSError as exc:
+        if not is_storage_fault(exc, storage):
+            raise
+        fail(storage_fault(exc, storage), soft_wrap=True)
+    except (ValueError, flow_refused()) as exc:
+        fail(str(exc))
 
 
 def flow_refused() -> type[Exception]:

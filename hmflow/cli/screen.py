@@ -19,7 +19,6 @@ from hmflow.cli.common import (
     app,
     checked_campaign,
     console,
-    fail,
     folder,
     load_case,
     refuse,
@@ -27,9 +26,10 @@ from hmflow.cli.common import (
 from hmflow.cli.flowrun import (
     check_inputs,
     fit_workers,
-    flow_refused,
     hold_name,
+    one_line_failures,
     progress_columns,
+    quiet_storage_faults,
     start_api,
 )
 from hmflow.console import Watch, campaign_poll, prefect_environment
@@ -83,18 +83,18 @@ def screen(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                   f"{c.space.dim} parameters, budget {calls}, workers {workers}, seed {seed}",
                   highlight=False)
     console.print(f"storage: {escape(str(storage))}", soft_wrap=True, highlight=False)
-    try:
-        with Watch(console, campaign_poll(storage, name, calls), progress_columns("run"),
-                   total=calls, initial={"best": "-"}):
-            result = screen_flow(case=str(case), method=method, budget=budget, workers=workers,
-                                 seed=seed, storage=str(storage), screen=name,
-                                 task_runner=task_runner, dask_address=dask_address,
-                                 centre=centre)
-    except KeyboardInterrupt:
-        console.print(f"screening [bold]{name}[/] stopped; the same command resumes it")
-        raise
-    except (ValueError, flow_refused()) as exc:
-        fail(str(exc))
+    quiet_storage_faults(storage)  # said in one line below, not as a traceback
+    with one_line_failures(storage):
+        try:
+            with Watch(console, campaign_poll(storage, name, calls), progress_columns("run"),
+                       total=calls, initial={"best": "-"}):
+                result = screen_flow(case=str(case), method=method, budget=budget,
+                                     workers=workers, seed=seed, storage=str(storage),
+                                     screen=name, task_runner=task_runner,
+                                     dask_address=dask_address, centre=centre)
+        except KeyboardInterrupt:
+            console.print(f"screening [bold]{name}[/] stopped; the same command resumes it")
+            raise
     print_result(result)
 
 
