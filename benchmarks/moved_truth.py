@@ -37,6 +37,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -104,16 +105,20 @@ def noisy(truth: pd.DataFrame, rng: np.random.Generator, generator: str, level: 
 
 
 def truth_run(out: Path, seed: int) -> tuple[dict[str, float], pd.DataFrame]:
-    """The truth of ``seed`` and its noise-free responses (one OPM run, kept in OUT)."""
+    """The truth of ``seed`` and its noise-free responses (one OPM run, kept in OUT; the
+    table is written last, atomically: a run killed before it is run again from scratch)."""
     folder = out / f"truth-{seed}"
     table = folder / "truth_responses.csv"
     truth = draw_valid_truth(seed, DECK.resolve())
     if not table.is_file():
+        shutil.rmtree(folder / "run", ignore_errors=True)  # a killed run's leftovers
         info = DeckInfo.inspect(DECK.resolve())
         deck = prepare_run_deck(DECK.resolve(), truth, ParameterSpace.reference(),
                                 folder / "run", info)
         result = OpmFlow().run(deck, folder / "run")
-        read_responses(result.summary_path, sorted(info.wells)).to_csv(table, index=False)
+        partial = table.with_suffix(".part")
+        read_responses(result.summary_path, sorted(info.wells)).to_csv(partial, index=False)
+        os.replace(partial, table)
     return truth, pd.read_csv(table)
 
 
