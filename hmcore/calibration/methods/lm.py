@@ -41,9 +41,8 @@ Calls are spent where they tell something (version 3):
   no pre-simulation check (up to :data:`START_DRAWS` draws; the first draw when none passes).
   The restarts alternate, the first near the best call so far (a normal draw of
   :data:`NEAR_SCALE` around it: does the basin hold a better point the descent missed?), the
-  next anywhere in the box (uniform: is there another basin?), and so on (version 5; version
-  4's were all uniform, and a last restart far from a converged fit spent the campaign's
-  last calls at many times its starting misfit).
+  next anywhere in the box (uniform: is there another basin?), and so on (the versions:
+  :data:`hmcore.calibration.registry.VERSIONS`; measured in docs/benchmarks.md).
 
 The residuals are the campaign's objective's (version 4,
 :meth:`hmcore.calibration.objective.Objective.residuals`): the whitened ones under the
