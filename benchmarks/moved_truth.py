@@ -222,7 +222,7 @@ def save(path: Path, results: dict, git_commit: bool) -> None:
 
 def method_tag(method: str) -> str:
     """The method as campaigns and the tables name it: with its version when it has had
-    several (``lm-v5``; the results of ``lm`` 4, from before the tag, say ``lm-v4``)."""
+    several (``lm-v6``; the results of ``lm`` 4, from before the tag, say ``lm-v4``)."""
     version = method_version(method)
     return f"{method}-v{version}" if version > 1 else method
 

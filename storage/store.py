@@ -320,6 +320,14 @@ class ArtifactStore:
         """Whether ``campaign`` has a folder in the store (anything stored under its name)."""
         return (self.root / validate_name("campaign", campaign)).is_dir()
 
+    def require_campaign(self, campaign: str) -> None:
+        """Raise ``FileNotFoundError`` (ENOENT, naming the missing folder) when ``campaign``
+        has no folder in the store: where its steps ran moments before, the store was removed
+        while a command ran, a fault of its file system (:mod:`storage.space`), not a result
+        that was never made."""
+        if not self.has_campaign(campaign):
+            raise FileNotFoundError(errno.ENOENT, "no such folder", str(self.root / campaign))
+
     def settings(self, campaign: str) -> dict[str, Any] | None:
         """The settings ``campaign``'s name is bound to (its ``campaign.json``); None when it
         has none yet."""

@@ -97,6 +97,7 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     plots copied beside ``report.md``. A report of the same inputs and code is the stored one:
     its Prefect artifacts are published again and no figure is drawn."""
     store = ArtifactStore(store_root)
+    store.require_campaign(campaign)  # gone: a storage fault (removed while the flow ran)
     results = store.latest(campaign, "results")
     case = store.latest(campaign, "case")
     diagnosis = store.latest(campaign, "diagnosis-report")

@@ -16,6 +16,7 @@ from hmcore.calibration.methods import make_proposer
 from hmcore.calibration.methods.base import Feedback, Proposal
 from hmcore.calibration.methods.lm import NEAR_SCALE, STALL_TRIALS, jacobian_base
 from hmcore.model.parameters import Parameter, ParameterSpace
+from hmcore.scoring.identifiability import find_stencil
 
 SPACE = ParameterSpace(parameters=(
     Parameter(name="a", kind="multiply", keywords=("PORO",), low=0.5, high=2.0),
@@ -154,6 +155,47 @@ def test_restarts_alternate_near_the_best_call_and_anywhere_in_the_box():
     far = np.abs(starts[1::2] - best).max(axis=1)
     assert near.max() < 5 * NEAR_SCALE and np.median(near) < 2 * NEAR_SCALE, near
     assert np.median(far) > 5 * NEAR_SCALE, far  # uniform on [-1, 1]^2: median about 0.9
+
+
+SPACE5 = ParameterSpace(parameters=tuple(
+    Parameter(name=f"m{k}", kind="multiply", keywords=("PORO",), low=0.5, high=2.0)
+    for k in range(5)))
+
+
+def five(u) -> np.ndarray:
+    """Five coordinates, curved, the minimum inside the box (not at a call lm would make)."""
+    a, b, c, d, e = u
+    return np.array([a - 0.3, 2 * (b + 0.4), 3 * a * b + 0.1, a * a - 0.5 * b + 0.05,
+                     0.2 * b * b - 0.1, np.sin(2 * c) - 0.3 * d, d * e - 0.2,
+                     np.exp(0.5 * e) - 1.2, c + d + e - 0.4, 0.5 * (a - c) ** 2])
+
+
+def five_batch(jobs):
+    out = []
+    for j in jobs:
+        r = five(np.asarray(j.action, float))
+        E = float(r @ r) / r.size
+        out.append({"index": j.index, "action": list(j.action), "params": j.values,
+                    "phase": j.phase, "status": "COMPLETE", "E": E, "penalty": 0.0,
+                    "reward": -E, "residuals": list(r)})
+    return out
+
+
+@pytest.mark.parametrize("budget", [40, 60])
+def test_lm_leaves_a_whole_finite_difference_stencil_at_its_best_call(budget):
+    """Version 6 computes one Jacobian column anew per accepted step (W = 2), the others are
+    secant estimates; a descent that ends on the best call runs the rest there, so the
+    report's identifiability finds a whole stencil at the best call itself."""
+    proposer = make_proposer("lm", SPACE5.dim, 0, 2, budget)
+    records = calibrate(proposer, SPACE5, five_batch, budget, 2)
+    assert len(records) == budget
+    points = np.array([r["action"] for r in records])
+    best = min(range(budget), key=lambda i: records[i]["E"])
+    per_step = [r["phase"] for r in records[6:]]  # after the first whole Jacobian
+    assert per_step.count("jacobian") < 4 * per_step.count("explore")  # not d per trial
+    assert proposer.descents and proposer.descents[0]["x"] is not None  # one ended
+    stencil = find_stencil(points, np.ones(budget, bool), best)
+    assert stencil is not None and stencil.base == best and stencil.distance == 0.0
 
 
 # ----------------------------------------------------------------------------- (2) no point twice

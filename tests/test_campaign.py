@@ -238,10 +238,10 @@ def test_the_default_campaign_simulates_no_point_twice_and_keeps_its_jacobian_va
     Jacobian run breaks a physics check its base passes (its finite-difference step went the
     other way). The descents meet the porosity-permeability trend check there: lm version 2
     sent a Jacobian run across it at call 44 (and 11 more by call 100); version 4's steps
-    turned at calls 9, 10, 27 and 28 of 50 (2026-11-28), and at calls 9 and 10 of this
-    test's 16 (its journal, 2026-11-28; 30 calls before, cut for the suite's time, issue 40)."""
+    turned at calls 9, 10, 27 and 28 of 50, version 6's (one Jacobian column anew per
+    accepted step) at calls 27, 31 and 32 of 40 (their journals, 0-based): 32 calls here."""
     assert DEFAULT_AGENT == "lm"
-    budget = 16
+    budget = 32
     run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
                           "--budget", str(budget), "--storage", str(tmp_path / "store")],
                          cwd=tmp_path, env=cli_env(prefect_api, COLUMNS="150"),

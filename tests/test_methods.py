@@ -113,18 +113,27 @@ def test_budget_problems_are_stated_before_anything_runs():
 
 
 def test_lm_fills_every_worker_at_its_serial_steps():
-    """lm's trial points go out with the first W - 1 Jacobian runs at that point (version 2):
-    every batch but the one the budget cuts fills the W workers, where version 1 sent each
-    trial point alone; the Jacobian runs are labelled as such."""
+    """lm's trial points go out with W - 1 Jacobian runs at that point (version 2): every
+    batch fills the W workers, where version 1 sent each trial point alone, but the one the
+    budget cuts and the runs of Jacobian columns redone the other way after their first run
+    came back failed or penalised (a batch after one with such a run); the Jacobian runs are
+    labelled as such."""
     sizes: list[int] = []
+    redos: list[bool] = []  # whether a batch follows one with a failed or penalised Jacobian run
+    broke = False
 
     def batch(jobs):
+        nonlocal broke
         sizes.append(len(jobs))
-        return fake_batch(jobs)
+        redos.append(broke and all(j.phase == "jacobian" for j in jobs))
+        out = fake_batch(jobs)
+        broke = any(r["phase"] == "jacobian" and r["status"] != "COMPLETE" for r in out)
+        return out
 
     proposer = make_proposer("lm", SPACE.dim, 0, WORKERS, BUDGET)
     records = calibrate(proposer, SPACE, batch, BUDGET, WORKERS)
     assert len(records) == BUDGET and sum(sizes) == BUDGET
-    assert all(n % WORKERS == 0 for n in sizes[:-1]), sizes
+    assert all(n % WORKERS == 0 or redo for n, redo in zip(sizes[:-1], redos)), (sizes, redos)
+    assert sizes.count(WORKERS) > len(sizes) / 2
     phases = [r["phase"] for r in records]
     assert phases[:2] == ["explore", "jacobian"] and phases.count("jacobian") > BUDGET / 2

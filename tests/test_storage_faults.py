@@ -19,7 +19,8 @@ import pytest
 from conftest import cli_env
 
 from storage import ArtifactStore
-from storage.space import require_store
+from storage.space import is_fault, require_store
+from tasks.results import report
 
 BUDGET = 4
 FIX = "and run the same command again: it resumes"
@@ -145,6 +146,18 @@ def test_a_store_removed_while_running_is_a_fault_naming_it(tmp_path):
 
 
 @pytest.mark.opm
+def test_a_report_on_a_store_removed_under_it_is_a_storage_fault(tmp_path):
+    """The report step of a flow whose store went away (after the calls, before the report:
+    the window the test below may hit) raises the store's fault, which the command says in
+    one line, not a missing-results error with a traceback."""
+    store = tmp_path / "store"
+    ArtifactStore(store).bind_settings("gone", {"agent": "random"})
+    shutil.rmtree(store)
+    with pytest.raises(FileNotFoundError) as caught:
+        report.fn(str(store), "gone", publish_prefect_artifacts=False)
+    assert is_fault(caught.value, store) and str(store / "gone") == caught.value.filename
+
+
 def test_a_store_removed_mid_campaign_ends_in_one_line(small_case, prefect_api, tmp_path):
     store = tmp_path / "store"
     run = _hmflow("run", "--case", str(small_case), "--agent", "random", "--budget", "4",

@@ -124,11 +124,14 @@ class AskTellLeastSquares:
         """The finite-difference points this solver asks at ``u`` (one row per coordinate)."""
         return fd_points(u, self.fd_steps(u))
 
-    def _fd_requests(self, u: np.ndarray) -> list[tuple[str, np.ndarray, Any]]:
+    def _fd_requests(self, u: np.ndarray, columns: list[int] | None = None
+                     ) -> list[tuple[str, np.ndarray, Any]]:
+        """The finite-difference requests at ``u``: every column, or those of ``columns``."""
         self._fd_base = u.copy()
         steps = self.fd_steps(u)
-        return [("fd", v, (i, float(h))) for i, (v, h) in enumerate(zip(fd_points(u, steps),
-                                                                         steps))]
+        requests = [("fd", v, (i, float(h))) for i, (v, h) in enumerate(zip(fd_points(u, steps),
+                                                                             steps))]
+        return requests if columns is None else [requests[i] for i in columns]
 
     def reverse_fd(self, i: int) -> np.ndarray | None:
         """Turn the pending finite-difference run of coordinate ``i`` the other way (its run

@@ -10,13 +10,15 @@ AGENTS = ("sac", "sac-paper", "random", "sobol", "cmaes", "de", "bo", "lm", "esm
 DEFAULT_AGENT = "lm"
 """The method a campaign runs unless told otherwise: the winner of the equal-budget benchmark
 (docs/benchmarks.md: how it was measured, and the method it replaced)."""
-VERSIONS = {"sac": 1, "lm": 5, "esmda": 2}
+VERSIONS = {"sac": 1, "lm": 6, "esmda": 2}
 """A method whose proposals changed: campaigns are bound to the version that made their calls
 (a resume under another version is refused; a benchmark names its campaigns after it).
 ``lm`` 2: speculative Jacobian columns beside each trial point; 3: no call on a point already
 simulated, physics checks as the edge of the domain, restarts instead of stalls; 4: the
 residuals of the case's objective, the noise refined from the best call at a descent's end;
-5: restarts alternate near the best call and anywhere in the box.
+5: restarts alternate near the best call and anywhere in the box; 6: after an accepted step,
+Broyden's update of the Jacobian and W - 1 of its columns anew (the ones run beside the
+trial), instead of all d.
 ``esmda`` 2: the residuals of the case's objective."""
 
 

@@ -42,6 +42,17 @@ non-finite residuals (the radius shrinks to a quarter of the step and another tr
 tried, as scipy does on a point outside ``fun``'s domain), counted in ``skipped``, not in
 ``nfev``. After :data:`MAX_SKIPPED_IN_ROW` in a row the descent ends (``status`` None,
 ``reason`` says why). Without ``breaks`` the solver is scipy's, point for point.
+
+With ``refresh`` (a number of columns, ``None`` by default: scipy's rule), an accepted trial is
+not followed by a whole new finite-difference Jacobian but by Broyden's rank-one (secant)
+update along the step (Broyden, 1965, Math. Comp. 19: 577-593; Dennis and Schnabel, 1996,
+*Numerical Methods for Unconstrained Optimization and Nonlinear Equations*, SIAM, section
+8.1), with ``refresh`` of its columns then computed anew by finite differences at the new
+point, in turn (:meth:`TrustRegionReflective.refresh_columns`), so that every column is a
+finite difference again every ``n / refresh`` accepted steps. A trial rejected while some
+columns are secant estimates is followed by finite differences of those columns at the
+current point before the next (shorter) trial: a rejection is then never the Jacobian's
+fault. An iteration costs a trial and ``refresh`` runs instead of a trial and ``n`` runs.
 """
 
 from __future__ import annotations
@@ -126,9 +137,19 @@ class TrustRegionReflective(AskTellLeastSquares):
     def __init__(self, u0: np.ndarray, fd_step: float, *, lower: np.ndarray | None = None,
                  upper: np.ndarray | None = None, max_nfev: int | None = None,
                  ftol: float = 1e-8, xtol: float = 1e-8, gtol: float = 1e-8,
-                 breaks: Callable[[np.ndarray, np.ndarray], bool] | None = None):
+                 breaks: Callable[[np.ndarray, np.ndarray], bool] | None = None,
+                 refresh: int | None = None):
         x0 = np.atleast_1d(np.asarray(u0)).astype(float)
         super().__init__(x0.size, fd_step, lower, upper, breaks)
+        if refresh is not None and not 1 <= refresh <= x0.size:
+            raise ValueError(f"refresh must be None or between 1 and {x0.size} columns, "
+                             f"got {refresh}")
+        self.refresh = refresh
+        """Columns computed anew after a secant update (None: a whole Jacobian, scipy's)."""
+        self.fresh = np.zeros(x0.size, bool)
+        """Which columns of ``J`` are finite differences at ``x`` (the others: secant)."""
+        self._turn = 0  # the first column of the next refresh
+        self._completing = False  # the columns asked by complete(): the end once told
         if not in_bounds(x0, self.lower, self.upper):
             raise ValueError(f"the start point {x0.tolist()} is outside the bounds")
         if max_nfev is not None and max_nfev <= 0:
@@ -163,13 +184,36 @@ class TrustRegionReflective(AskTellLeastSquares):
         """True when the points asked are the finite differences at ``x``."""
         return bool(self._pending) and self._pending[0][0] == "fd"
 
+    @property
+    def columns_asked(self) -> list[int]:
+        """The coordinates of the finite differences asked, in the order of :meth:`ask`."""
+        return [tag[0] for kind, _, tag in self._pending if kind == "fd"]
+
+    def refresh_columns(self, k: int) -> list[int]:
+        """The first ``k`` columns this solver asks at a point it accepts next: the whole
+        Jacobian's first ``k`` without ``refresh`` (or before the first Jacobian), else the
+        next ``k`` in turn (what a caller may simulate beside a trial, ahead of the answer)."""
+        k = max(0, min(k, self.x.size))
+        if self.refresh is None or self.J is None:
+            return list(range(k))
+        return [(self._turn + i) % self.x.size for i in range(k)]
+
     # ------------------------------------------------------------------ tell
     def tell(self, results: list[tuple[np.ndarray | None, Any]]) -> None:
         received = self._receive(results)
         (kind, _, _), p = received[0]
         if kind == "fd":
-            self.J = self._jacobian(self.f, received)
+            columns = [tag[0] for (k, _, tag), _ in received if k == "fd"]
+            if self.J is None or len(columns) == self.x.size:
+                self.J = self._jacobian(self.f, received)
+            else:  # some columns anew, the others kept (secant estimates)
+                self.J[:, columns] = self._jacobian(self.f, received)
+            self.fresh[columns] = True
             self.g = compute_grad(self.J, self.f)
+            if self._completing:
+                self._completing = False
+                self.done = True
+                return
             if self.Delta is None:
                 self._begin()
             else:
@@ -184,6 +228,18 @@ class TrustRegionReflective(AskTellLeastSquares):
             self._pending = self._fd_requests(self.x)
         else:
             self._told_trial(p.r)
+
+    def complete(self) -> bool:
+        """Ask anew, at ``x``, the columns of ``J`` that are secant estimates (or were never
+        told there), the solver ending once they are told: a whole finite-difference
+        Jacobian at the point a descent ended on. False, nothing asked, when there are none
+        or no Jacobian was ever computed (a failed start)."""
+        if self.J is None or self.failed or self.fresh.all():
+            return False
+        self._pending = self._fd_requests(self.x, [int(k) for k in np.flatnonzero(~self.fresh)])
+        self._completing = True
+        self.done = False
+        return True
 
     # ------------------------------------------------------------------ the algorithm
     def _begin(self) -> None:
@@ -313,15 +369,36 @@ class TrustRegionReflective(AskTellLeastSquares):
             return
         self.alpha *= self.Delta / Delta_new
         self.Delta = Delta_new
+        if (self.refresh is not None and self.actual_reduction <= 0 and not self.fresh.all()
+                and self.nfev < self.max_nfev):  # rejected on secant columns: those anew first
+            self._pending = self._fd_requests(self.x, [int(i) for i in np.flatnonzero(~self.fresh)])
+            return
         self._next_trial()
 
     def _end_iteration(self) -> None:
-        """Accept a trial that lowered the cost (and ask for the Jacobian there), else iterate
-        again from the same point."""
+        """Accept a trial that lowered the cost (and ask for the Jacobian there: all of it,
+        or with ``refresh`` the next columns in turn after a secant update), else iterate
+        again from the same point (with ``refresh``, after finite differences of the columns
+        that are secant estimates: see :meth:`_told_trial`)."""
         if self.actual_reduction > 0:
             t = self._trial
+            if self.refresh is not None and self.status is None:
+                self._secant(t.x_new - self.x, t.f_new - self.f)
             self.x, self.f, self.cost = t.x_new, t.f_new, t.cost_new
-            self._pending = self._fd_requests(self.x)
+            self.fresh[:] = False
+            if self.refresh is None or self.status is not None:
+                self._pending = self._fd_requests(self.x)
+                return
+            columns = self.refresh_columns(self.refresh)
+            self._turn = (self._turn + self.refresh) % self.x.size
+            self._pending = self._fd_requests(self.x, columns)
             return
         self.iteration += 1
         self._iterate()
+
+    def _secant(self, step: np.ndarray, change: np.ndarray) -> None:
+        """Broyden's rank-one update of ``J`` along ``step``, the residuals having changed by
+        ``change``: the least change of ``J`` that maps the step to the change."""
+        ss = float(step @ step)
+        if ss > 0:
+            self.J = self.J + np.outer(change - self.J @ step, step) / ss

@@ -12,10 +12,21 @@ call. A failed run has no residuals: at the current point it ends that descent, 
 its column is left at 0.
 
 Workers are not left idle by the serial steps (version 2): each point the solver asks is sent
-together with the first W - 1 finite-difference runs of the Jacobian at that point, so that
-when the step is accepted (it usually is) those columns are already there. A rejected step
-wastes them: W - 1 calls. Version 1 sent the trial point alone, and a 2-worker campaign ran
-32 % above the simulator time per worker on PUNQ-S3 (one worker idle at every step).
+together with W - 1 finite-difference runs of the Jacobian at that point, so that when the
+step is accepted (it usually is) those columns are already there. A rejected step wastes
+them: W - 1 calls. Version 1 sent the trial point alone, and a 2-worker campaign ran 32 %
+above the simulator time per worker on PUNQ-S3 (one worker idle at every step).
+
+The Jacobian is not computed anew at every accepted point (version 6): it is updated along
+the step by Broyden's secant formula and only :func:`refresh` of its columns (the W - 1 run
+beside the trial, at least one) are finite differences at the new point, the columns in
+turn; a trial rejected while some columns are secant estimates is followed by finite
+differences of those (see :mod:`~hmcore.calibration.trust_region_reflective`). An iteration
+near the end of a descent costs W calls instead of d + 1; a descent still starts on a whole
+finite-difference Jacobian, and one that ends on the campaign's best call with secant columns
+there runs those anew (:meth:`Descent.complete`): the report's identifiability section reads
+a whole finite-difference stencil at the best call from the journal
+(:mod:`hmcore.reporting.identifiability`).
 
 Calls are spent where they tell something (version 3):
 
@@ -80,6 +91,12 @@ NEAR_SCALE = 0.1
 start around the best call: two finite-difference steps, a twentieth of the box's width."""
 
 
+def refresh(workers: int, dim: int) -> int:
+    """Jacobian columns computed anew after an accepted step: those run beside the trial
+    (W - 1), at least one, at most all ``dim``."""
+    return min(max(workers - 1, 1), dim)
+
+
 def residuals_of(record: dict) -> np.ndarray | None:
     """The least-squares residuals of a record under the E objective, from the record's own
     ``residuals`` (None for a failed run): see :meth:`Objective.residuals`."""
@@ -108,10 +125,12 @@ class LMDriver:
         x0 = np.zeros(self.dim)
         while calls.left > 0:
             solver = TrustRegionReflective(x0, FD_STEP, max_nfev=calls.left,
-                                           breaks=calls.breaks)
+                                           breaks=calls.breaks,
+                                           refresh=refresh(workers, self.dim))
             descent = Descent(solver, calls, workers)
             try:
                 descent.run()
+                descent.complete()
             except BudgetExhausted:
                 break
             ran = not solver.failed and solver.f is not None
@@ -210,28 +229,45 @@ class Descent:
             if self._refined_now() or (not starting and self._stalls(before)):
                 return
 
+    def complete(self) -> None:
+        """When the descent ended on the campaign's best call and some Jacobian columns there
+        are secant estimates (or were never run), run those anew (the solver then ends)."""
+        solver = self.solver
+        best = self.calls.best()
+        if best is None or solver.failed or solver.f is None:
+            return
+        if self.key_of(np.asarray(best["action"], float)) != self.key_of(solver.x):
+            return
+        if solver.complete():
+            self._jacobian(solver.ask())
+
     def _point(self, x: np.ndarray) -> dict:
-        """Simulate the point ``x`` with the first W - 1 Jacobian runs there; its record."""
+        """Simulate the point ``x`` with the W - 1 Jacobian runs the solver would ask first
+        there; its record."""
         calls = self.calls
         extra = min(max(self.workers - 1, 0), self.dim, max(calls.left - 1, 0))
-        batch = np.vstack([x[None], self.solver.fd_points(x)[:extra]])
+        columns = self.solver.refresh_columns(extra)
+        batch = np.vstack([x[None], self.solver.fd_points(x)[columns]])
         records = calls.run(batch, phases=["explore"] + ["jacobian"] * extra)
-        self.columns[self.key_of(x)] = dict(enumerate(records[1:]))
+        self.columns[self.key_of(x)] = dict(zip(columns, records[1:]))
         self.base[self.key_of(x)] = records[0]
         return records[0]
 
     def _jacobian(self, points: list[np.ndarray]) -> None:
-        """The Jacobian at the current point: the speculative runs there and the rest; a run
-        broken where its base is valid is run once more the other way."""
+        """The Jacobian columns asked at the current point: the speculative runs there and
+        the rest; a run broken where its base is valid is run once more the other way."""
         solver, calls = self.solver, self.calls
         key = self.key_of(solver.x)
-        runs = dict(self.columns.get(key, {}))
-        todo = [k for k in range(self.dim) if k not in runs]
+        asked = solver.columns_asked
+        have = self.columns.get(key, {})
+        runs = {k: have[k] for k in asked if k in have}
+        todo = [i for i, k in enumerate(asked) if k not in runs]
         if todo:
-            runs.update(zip(todo, calls.run(np.array(points)[todo], phase="jacobian")))
+            runs.update(zip([asked[i] for i in todo],
+                            calls.run(np.array(points)[todo], phase="jacobian")))
         base = self.base.get(key)
         again = {}
-        for k in range(self.dim):
+        for k in asked:
             if broken_at(runs[k], base):
                 w = solver.reverse_fd(k)
                 if w is not None:
@@ -242,7 +278,7 @@ class Descent:
                 if not (record.get("status") == "FAIL" and runs[k].get("status") != "FAIL"
                         and solver.reverse_fd(k) is not None):  # back: the first has residuals
                     runs[k] = record
-        solver.tell([(self.residuals(runs[k]), runs[k]) for k in range(self.dim)])
+        solver.tell([(self.residuals(runs[k]), runs[k]) for k in asked])
 
     def _stalls(self, before: float) -> bool:
         """Whether the descent ends after a trial (``before``: the cost it started from): an
