@@ -27,7 +27,8 @@ rule its results were made with (a campaign is bound to the calls its method mad
   method): scipy's trust-region reflective algorithm, ``scipy.optimize.least_squares(
   method="trf", x_scale=1.0)``, as a state machine: one trial point per request, the radius
   of a trust region as the damping, reflection at the bounds, a new finite-difference
-  Jacobian at every accepted point. Its module computes with scipy's helpers (whose import
+  Jacobian at every accepted point (or, with ``refresh``, Broyden's update and a few columns
+  anew). Its module computes with scipy's helpers (whose import
   takes a second), so that the recalibrations, which need only numpy, do not load them.
 * :class:`LevenbergMarquardt` (the recalibrations): Marquardt's damping ``lam * diag(J'J)``
   with several damping values tried together, an active set at the bounds and projection

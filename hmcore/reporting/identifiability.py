@@ -5,8 +5,8 @@ alone.
 The Jacobian is a forward-difference stencil among the campaign's journaled calls
 (:func:`hmcore.scoring.identifiability.find_stencil`): at the best call, or at the nearest call
 within :data:`~hmcore.scoring.identifiability.MAX_BASE_DISTANCE` of it that has one (``lm``
-computes one at every point it accepts, and its best call is usually one of them or one
-finite-difference step from one). Its residuals are the noise-whitened residuals of the fitted
+computes a whole one where a descent starts, after a trial rejected on secant columns, and
+where a descent ends on the campaign's best call). Its residuals are the noise-whitened residuals of the fitted
 history, recomputed from each record's simulated values under the noise the campaign ended
 with (the latest ``noise`` artifact, else the case's): the residuals the campaign's likelihood
 is of, without the physics penalty's entry. A record without simulated values (an older
