@@ -189,6 +189,11 @@ class TrustRegionReflective(AskTellLeastSquares):
         """The coordinates of the finite differences asked, in the order of :meth:`ask`."""
         return [tag[0] for kind, _, tag in self._pending if kind == "fd"]
 
+    @property
+    def secant_columns(self) -> list[int]:
+        """The columns of ``J`` that are not finite differences at ``x``."""
+        return [int(k) for k in np.flatnonzero(~self.fresh)]
+
     def refresh_columns(self, k: int) -> list[int]:
         """The first ``k`` columns this solver asks at a point it accepts next: the whole
         Jacobian's first ``k`` without ``refresh`` (or before the first Jacobian), else the
@@ -236,7 +241,7 @@ class TrustRegionReflective(AskTellLeastSquares):
         or no Jacobian was ever computed (a failed start)."""
         if self.J is None or self.failed or self.fresh.all():
             return False
-        self._pending = self._fd_requests(self.x, [int(k) for k in np.flatnonzero(~self.fresh)])
+        self._pending = self._fd_requests(self.x, self.secant_columns)
         self._completing = True
         self.done = False
         return True
@@ -371,7 +376,7 @@ class TrustRegionReflective(AskTellLeastSquares):
         self.Delta = Delta_new
         if (self.refresh is not None and self.actual_reduction <= 0 and not self.fresh.all()
                 and self.nfev < self.max_nfev):  # rejected on secant columns: those anew first
-            self._pending = self._fd_requests(self.x, [int(i) for i in np.flatnonzero(~self.fresh)])
+            self._pending = self._fd_requests(self.x, self.secant_columns)
             return
         self._next_trial()
 
