@@ -27,10 +27,9 @@ BUDGET, SEEDS = 4, 1  # 4: the smallest budget every method runs (ES-MDA: 2 memb
 # one seed, then the continued run adds a second
 METHODS = ("lm", "esmda")
 """The methods of the default run: a driver with Jacobian runs and an ensemble, the two ways a
-call is not one proposal (every method - all of :data:`hmcore.calibration.methods.AGENTS` -
-takes 7 min with 2 seeds, too much of CI's time: `-m slow` runs them all;
-tests/test_methods.py holds every method to its budget). A proposer ("random") was the third
-until 2026-11-28 (CI's suite time, issue 40); the continued run adds a seed of ``RESUMED``."""
+call is not one proposal (every method, all of :data:`hmcore.calibration.methods.AGENTS`, is
+the `-m slow` run; tests/test_methods.py holds every method to its budget without the
+simulator); the continued run adds a seed of ``RESUMED``."""
 RESUMED = "esmda"
 
 

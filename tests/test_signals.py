@@ -49,9 +49,8 @@ def _own_server(pgid: int, log: Path) -> None:
 @pytest.mark.opm
 def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaign_resumes(
         tmp_path, small_case, prefect_api):
-    """One campaign, three starts of the same command (one test since 2026-11-28, for the
-    suite's time, issue 40: it was a SIGTERM test and a kill -9 test, each with its own
-    campaign, reference runs and temporary servers):
+    """One campaign, three starts of the same command (one campaign and its reference runs
+    for the three, for the suite's time):
 
     1. ``kill -9``: SIGKILL cannot be caught, so what hmflow started must die with it by
        itself (the temporary Prefect server and the simulators are killed by the kernel,
@@ -62,7 +61,7 @@ def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaig
     3. the same command on the session's server resumes from the journal: every call once,
        nothing journaled simulated again.
 
-    The name's lock (issue 43): left by the killed run, taken over with a warning by the
+    The name's lock: left by the killed run, taken over with a warning by the
     resumed one, released by SIGTERM; while the third start runs, a second process on the
     name is refused at once, naming the holder; the end releases it."""
     store = tmp_path / "store"
