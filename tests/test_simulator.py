@@ -12,6 +12,8 @@ import json
 import math
 import re
 import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -24,7 +26,8 @@ from hmcore.errors import FailureKind, SimulationError
 from hmcore.scoring.evaluation import Status, evaluate, score_responses
 from hmcore.model.parameters import ParameterSpace
 from hmcore.simulation.responses import INJECTION, QUANTITIES, last_time, read_responses
-from hmcore.simulation.simulator import (CommandLineSimulator, OpmFlow, SimulationResult, make_simulator)
+from hmcore.simulation.simulator import (CommandLineSimulator, OpmFlow, SimulationResult, make_simulator,
+                                         run_in_own_group)
 
 # Tests that need the PUNQ-S3 data get it through fixtures that skip when it is absent;
 # tests marked opm are skipped when OPM is not installed (conftest).
@@ -69,6 +72,8 @@ def test_opm_flow_runs_punq_truth(truth_run, punq_info):
     assert truth_run.summary_path.name == "PUNQS3.SMSPEC" and truth_run.summary_path.is_file()
     assert (truth_run.run_dir / "PUNQS3.UNSMRY").is_file()
     assert truth_run.wall_time_s > 0
+    # its peak resident memory, measured (about 105 MB on the machines this was written on)
+    assert 30e6 < truth_run.peak_rss_bytes < 2e9
     assert last_time(truth_run.summary_path) == pytest.approx(punq_info.end_days)  # 6025 d
     r = read_responses(truth_run.summary_path)
     assert set(r.well) == set(punq_info.wells)
@@ -399,3 +404,23 @@ def test_a_timeout_kills_the_simulator_and_everything_it_started(tmp_path):
         stat = Path(f"/proc/{pid}/stat")
         state = stat.read_text().rsplit(")", 1)[1].split()[0] if stat.exists() else "gone"
         assert state in ("gone", "Z"), (pid, state)
+
+
+def test_the_peak_memory_of_a_run_is_measured_from_what_the_process_group_used(tmp_path):
+    """The group's peak resident memory since exec (not the forked copy of this process a
+    child begins as): a wrapper whose child holds 200 MiB for 3 s (the group is looked for
+    every second) is measured above that, a process that holds nothing far below."""
+    small = run_in_own_group([sys.executable, "-c", "pass"], subprocess.DEVNULL,
+                             subprocess.DEVNULL, 60, tmp_path)
+    hold = ("import time; b = bytearray(200 * 2**20); b[::4096] = b'x' * len(b[::4096]); "
+            "time.sleep(3)")
+    child = f"import subprocess, sys; subprocess.run([sys.executable, '-c', {hold!r}])"
+    large = run_in_own_group([sys.executable, "-c", child], subprocess.DEVNULL,
+                             subprocess.DEVNULL, 60, tmp_path)
+    assert small.returncode == 0 and large.returncode == 0
+    assert large.peak_rss_bytes > 200 * 2**20 > 4 * small.peak_rss_bytes > 0
+    failing = run_in_own_group([sys.executable, "-c", "raise SystemExit(3)"],
+                               subprocess.DEVNULL, subprocess.DEVNULL, 60, tmp_path)
+    assert failing.returncode == 3
+    with pytest.raises(subprocess.TimeoutExpired):
+        run_in_own_group(["sleep", "30"], subprocess.DEVNULL, subprocess.DEVNULL, 0.2, tmp_path)

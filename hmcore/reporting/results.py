@@ -9,7 +9,8 @@ from hmcore.scoring.record_format import upgrade
 
 COLUMNS = ["index", "phase", "lane", "status", "failure", "reason", "E", "likelihood", "penalty",
            "reward", "coverage",
-           "E_heldout", "wall_time_s", "sim_time_s", "run_dir", "seed", "agent", "attempts"]
+           "E_heldout", "wall_time_s", "sim_time_s", "peak_rss_bytes", "run_dir", "seed", "agent",
+           "attempts"]
 
 
 

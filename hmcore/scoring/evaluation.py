@@ -65,6 +65,7 @@ class Evaluation:
     violation_kinds: tuple[str, ...] = ()  # hmcore.scoring.physics.Check values, one per violation
     failure: FailureKind | None = None      # why a FAIL gave no result (None otherwise)
     E_worst: float = float("nan")           # the worst well-response loss of the fitted part
+    peak_rss_bytes: float = float("nan")    # the simulator's peak resident memory (NaN: unknown)
 
     @property
     def selectable(self) -> bool:
@@ -85,7 +86,8 @@ class Evaluation:
                    num("E_heldout"), dict(record.get("metrics") or {}),
                    dict(record.get("heldout_metrics") or {}),
                    violation_kinds=tuple(record.get("violation_kinds") or ()),
-                   failure=failure_of(record), E_worst=num("E_worst"))
+                   failure=failure_of(record), E_worst=num("E_worst"),
+                   peak_rss_bytes=num("peak_rss_bytes"))
 
     def to_record(self) -> dict:
         """Flat JSON-friendly record (no responses table)."""
@@ -97,6 +99,10 @@ class Evaluation:
         rec["failure"] = self.failure.value if self.failure is not None else None
         return rec
 
+
+
+def _bytes(peak: int | None) -> float:
+    return float("nan") if peak is None else float(peak)
 
 
 def simulator_for(case: Case) -> Simulator:
@@ -136,13 +142,14 @@ def evaluate(case: Case, values: dict[str, float], run_dir: Path,
     phys = check_physics(values, case.space, case.info, case.physics)
     fail_reward = -case.physics.failure_penalty - phys.penalty
 
-    def failed(kind: FailureKind, message: str, sim_time: float = 0.0) -> Evaluation:
+    def failed(kind: FailureKind, message: str, sim_time: float = 0.0,
+               peak: int | None = None) -> Evaluation:
         return Evaluation(dict(values), Status.FAIL, float("nan"),
                           case.physics.failure_penalty + phys.penalty, fail_reward,
                           wall_time_s=time.perf_counter() - start, sim_time_s=sim_time,
                           run_dir=str(run_dir), reason=f"{kind.value}: {message}",
                           violations=phys.violations, violation_kinds=phys.kinds,
-                          failure=kind)
+                          failure=kind, peak_rss_bytes=_bytes(peak))
 
     if not phys.runnable:
         return failed(FailureKind.NOT_RUNNABLE, "physically impossible, not simulated: "
@@ -161,23 +168,24 @@ def evaluate(case: Case, values: dict[str, float], run_dir: Path,
     except Exception as exc:  # opm.io raises RuntimeError, ValueError, IndexError...
         return failed(FailureKind.UNREADABLE_OUTPUT, f"cannot read {result.summary_path.name}: "
                       f"{type(exc).__name__}: {' '.join(str(exc).split())[:200]}",
-                      result.wall_time_s)
+                      result.wall_time_s, result.peak_rss_bytes)
     if end < case.run_end_days - 1e-3:
         return failed(FailureKind.NO_CONVERGENCE, f"stopped at day {end} of "
-                      f"{case.run_end_days}", result.wall_time_s)
+                      f"{case.run_end_days}", result.wall_time_s, result.peak_rss_bytes)
     if not responses.empty and not np.isfinite(responses["value"].to_numpy(float)).all():
         bad = responses[~np.isfinite(responses["value"].to_numpy(float))]
         return failed(FailureKind.INVALID_VALUES, f"{len(bad)} simulated values are not finite "
                       f"(first: {bad.quantity.iloc[0]} of {bad.well.iloc[0]} at day "
-                      f"{bad.days.iloc[0]:g})", result.wall_time_s)
+                      f"{bad.days.iloc[0]:g})", result.wall_time_s, result.peak_rss_bytes)
     s = score_responses(case, responses)
     if not math.isfinite(s["E"]):
         return failed(FailureKind.NO_MATCH, "no simulated record within the time tolerance of "
-                      "any observation", result.wall_time_s)
+                      "any observation", result.wall_time_s, result.peak_rss_bytes)
     phys = phys + check_responses(responses, case.info, case.physics)
     status = Status.COMPLETE if phys.valid else Status.INVALID
     return Evaluation(dict(values), status, s["E"], phys.penalty, -s["E"] - phys.penalty,
                       s["per_response"], s["coverage"], time.perf_counter() - start,
                       result.wall_time_s, str(run_dir), "; ".join(phys.violations),
                       phys.violations, s["E_heldout"], s["metrics"], s["heldout_metrics"],
-                      responses, phys.kinds, E_worst=s["E_worst"])
+                      responses, phys.kinds, E_worst=s["E_worst"],
+                      peak_rss_bytes=_bytes(result.peak_rss_bytes))

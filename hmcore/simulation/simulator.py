@@ -14,6 +14,7 @@ and the run directory; nothing here retries.
 
 from __future__ import annotations
 
+import math
 import os
 import shlex
 import signal
@@ -31,12 +32,24 @@ LOG_TAIL_CHARS = 4000
 
 @dataclass(frozen=True)
 class SimulationResult:
-    """Where a finished run left its summary (``CASE.SMSPEC``) and how long it took."""
+    """Where a finished run left its summary (``CASE.SMSPEC``), how long it took and its peak
+    resident memory (bytes; None when not measured)."""
 
     summary_path: Path
     run_dir: Path
     wall_time_s: float
     backend: str
+    peak_rss_bytes: int | None = None
+
+
+@dataclass(frozen=True)
+class Finished:
+    """The leader of a process group that ended: its return code (negative: the signal that
+    killed it) and the group's peak resident memory in bytes (see :func:`_wait`; 0 when it
+    ended before it was first looked at)."""
+
+    returncode: int
+    peak_rss_bytes: int
 
 
 class Simulator(Protocol):
@@ -81,14 +94,14 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
 
 
 def run_in_own_group(cmd: list[str], stdout, stderr, timeout_s: float, cwd: Path
-                     ) -> subprocess.CompletedProcess:
+                     ) -> Finished:
     """Run ``cmd`` as the leader of its own process group, killed with the process that
     started it; on timeout the whole group (the simulator and anything it started: an MPI
     launcher's ranks, a wrapper script's child) is killed, then TimeoutExpired is raised."""
     proc = subprocess.Popen(cmd, stdout=stdout, stderr=stderr, cwd=cwd, start_new_session=True,
                             preexec_fn=_die_with_parent if sys.platform == "linux" else None)
     try:
-        proc.wait(timeout=timeout_s)
+        finished = _wait(proc, timeout_s)
     except subprocess.TimeoutExpired:
         _kill_group(proc)
         raise
@@ -97,7 +110,72 @@ def run_in_own_group(cmd: list[str], stdout, stderr, timeout_s: float, cwd: Path
         raise
     finally:
         _kill_group(proc, after_exit=True)
-    return subprocess.CompletedProcess(cmd, proc.returncode)
+    return finished
+
+
+WAIT_POLL_MAX_S = 0.05
+"""The longest pause between two looks at a running simulator."""
+GROUP_SCAN_S = 1.0
+"""How often the other members of the group (an MPI launcher's ranks, a wrapper's child) are
+looked for in /proc."""
+
+
+def _wait(proc: subprocess.Popen, timeout_s: float) -> Finished:
+    """Wait for ``proc`` (every millisecond at first, then at most every
+    :data:`WAIT_POLL_MAX_S`), TimeoutExpired after ``timeout_s``; meanwhile read the high-water
+    mark of resident memory (``VmHWM`` in /proc/PID/status: since the process's exec, not the
+    forked copy of this process it began as) of the leader at each look and of the group's
+    other members every :data:`GROUP_SCAN_S`. The peak is the largest sum seen over the
+    members (each at its own high-water mark: an upper bound of what they held at once)."""
+    deadline = time.monotonic() + timeout_s
+    pause, scanned, peak = 0.001, -math.inf, 0
+    members, marks = [proc.pid], {}
+    while True:
+        if proc.poll() is not None:
+            return Finished(proc.returncode, peak)
+        now = time.monotonic()
+        if now - scanned >= GROUP_SCAN_S:
+            members, scanned = _group_members(proc.pid), now
+        for pid in members:
+            marks[pid] = max(marks.get(pid, 0), _high_water(pid))
+        peak = max(peak, sum(marks.values()))
+        left = deadline - now
+        if left <= 0:
+            raise subprocess.TimeoutExpired(proc.args, timeout_s)
+        time.sleep(min(pause, left))
+        pause = min(2 * pause, WAIT_POLL_MAX_S)
+
+
+def _high_water(pid: int) -> int:
+    """``VmHWM`` of ``pid`` in bytes (0 when it is gone or has no memory of its own)."""
+    try:
+        with open(f"/proc/{pid}/status", "rb") as f:
+            for line in f:
+                if line.startswith(b"VmHWM:"):
+                    return int(line.split()[1]) * 1024  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def _group_members(pgid: int) -> list[int]:
+    """The processes of the process group ``pgid`` (the leader first)."""
+    members = [pgid]
+    try:
+        names = os.listdir("/proc")
+    except OSError:
+        return members
+    for name in names:
+        if not name.isdigit() or int(name) == pgid:
+            continue
+        try:
+            with open(f"/proc/{name}/stat", "rb") as f:
+                stat = f.read()
+            if int(stat.rsplit(b")", 1)[1].split()[2]) == pgid:
+                members.append(int(name))
+        except (OSError, ValueError, IndexError):
+            continue
+    return members
 
 
 def _kill_group(proc: subprocess.Popen, after_exit: bool = False) -> None:
@@ -150,7 +228,7 @@ def _run_process(cmd: list[str], deck: Path, run_dir: Path, timeout_s: float, ba
                                   f"({summary.name}) to {run_dir}", run_dir,
                                   _failure_log(run_dir, log_path, out_path))
         summary = found[0]
-    return SimulationResult(summary, run_dir, wall, backend)
+    return SimulationResult(summary, run_dir, wall, backend, proc.peak_rss_bytes or None)
 
 
 @dataclass(frozen=True)
