@@ -65,6 +65,7 @@ def metrics_document(ev) -> dict:
         "run_dir": ev.run_dir,
         "sim_time_s": ev.sim_time_s,
         "wall_time_s": ev.wall_time_s,
+        "peak_rss_bytes": ev.peak_rss_bytes,
     }
     return to_jsonable(doc)
 
