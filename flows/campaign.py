@@ -25,10 +25,11 @@ from hmcore.calibration.registry import (
     method_version,
 )
 from hmcore.cases import load_case
+from hmcore.model.fingerprint import deck_file_hashes
 from hmcore.scoring.evaluation import SCORING_VERSION
 from storage import ArtifactStore, EvaluationJournal, validate_name
 from storage.lock import NameHeldError, NameKind, NameLock
-from tasks.case import deck_file_hashes, prepare_deck, stored_case_differences
+from tasks.case import prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
 from tasks.noise import store_noise
 from tasks.reference import reference_name, reference_settings, run_references

@@ -29,9 +29,10 @@ from flows.refuse import USER_ERRORS, input_problems, refused
 from flows.runners import Runner
 from flows.runners import task_runner as make_runner
 from hmcore.cases import load_case
+from hmcore.model.fingerprint import deck_file_hashes
 from storage import ArtifactStore
 from storage.lock import NameHeldError, NameKind, NameLock
-from tasks.case import deck_file_hashes, prepare_deck
+from tasks.case import prepare_deck
 from tasks.ensemble import (
     ensemble_settings,
     forecast_step,

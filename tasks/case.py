@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 from pathlib import Path
 
@@ -11,37 +10,14 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 
 import hmcore.model.case as case_models
-from hmcore.eclipse.includes import deck_files
 from hmcore.model.case import Case
+from hmcore.model.fingerprint import case_fingerprint
 from hmcore.model.parameters import Parameter
 from hmcore.model.run_deck import prepare_run_deck
 from hmcore.scoring.noise_table import noise_summary
 from hmcore.scoring.observations import ObservationSet
 from storage import ArtifactStore, ArtifactVersion, code_version, refuse_links
 from storage.jsonable import to_jsonable
-
-
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
-def deck_file_hashes(case: Case) -> dict[str, str]:
-    """SHA-256 of every file the deck reads (the main file and its INCLUDEs, recursively,
-    wherever they are); other files beside the deck do not count. Keyed by the path relative
-    to the deck's folder (so the case folder can move), absolute for a file outside it."""
-    home = Path(case.deck).resolve().parent
-
-    def key(p: Path) -> str:
-        return str(p.relative_to(home)) if p.is_relative_to(home) else str(p)
-
-    return {key(p): file_sha256(p) for p in deck_files(case.deck)}
-
-
-def case_fingerprint(case: Case) -> dict:
-    """What identifies a case's inputs: hashes of the case file, every file the deck reads,
-    and the history."""
-    return {"case_file": file_sha256(case.source), "deck": file_sha256(case.deck),
-            "deck_files": deck_file_hashes(case), "observed": file_sha256(case.observed_path)}
 
 
 def fingerprint_differences(version: ArtifactVersion, case: Case) -> list[str]:

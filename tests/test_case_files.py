@@ -30,7 +30,7 @@ def _case_with_outside_include(tmp_path, small_case):
 
 def test_deck_files_follow_includes_outside_the_folder_and_ignore_the_rest(tmp_path, small_case):
     from hmcore.cases import load_case
-    from tasks.case import deck_file_hashes
+    from hmcore.model.fingerprint import deck_file_hashes
 
     case_file, inc = _case_with_outside_include(tmp_path, small_case)
     (case_file.parent / "notes.txt").write_text("unrelated")

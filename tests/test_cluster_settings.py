@@ -14,6 +14,9 @@ from flows.runners import task_runner
 from hmcore.cases import load_case
 from hmcore.errors import CaseError
 from hmcore.model.cluster import ClusterKind, ClusterSettings, cluster_problems
+from hmcore.model.fingerprint import deck_file_hashes
+from storage import ArtifactStore, EvaluationJournal
+from storage.peaks import measured_peak
 
 
 def _case(small_case: Path, root: Path, section: str) -> Path:
@@ -61,3 +64,46 @@ def test_walltime_cores_and_memory_are_checked_against_the_simulator():
                     "c.toml key 'cluster.memory'"], keys
     assert "00:17:00" in problems[0].fix  # 900 s + the worker's start
     assert cluster_problems(ClusterSettings(walltime="00:17:00"), 900, 1, "c.toml") == []
+
+
+def _stored_runs(store: ArtifactStore, campaign: str, deck_files: dict, peaks: list,
+                 journal: str | None = None) -> None:
+    """A campaign of the deck whose files hash to ``deck_files``, with one journal record per
+    peak (None: a run that was not measured)."""
+    store.put(campaign, "case", {"deck_files": deck_files},
+              lambda d: (d / "case.json").write_text("{}"), "test")
+    for i, peak in enumerate(peaks):
+        EvaluationJournal(store, campaign, journal).record(
+            i, {"status": "COMPLETE", "peak_rss_bytes": peak})
+
+
+def test_the_highest_measured_peak_of_the_same_deck_is_found_in_every_journal(tmp_path):
+    store = ArtifactStore(tmp_path / "store")
+    deck = {"DECK.DATA": "a" * 64, "GRID.INC": "b" * 64}
+    assert measured_peak(store, deck) is None  # no store yet
+    _stored_runs(store, "calib", deck, [1.0e8, None, 2.5e8])
+    _stored_runs(store, "diag", deck, [3.0e8], journal="diagnosis")
+    _stored_runs(store, "other-deck", {**deck, "GRID.INC": "c" * 64}, [9.0e9])
+    peak = measured_peak(store, deck)
+    assert (peak.bytes, peak.campaign, peak.index, peak.runs) == (3.0e8, "diag", 0, 3)
+    assert measured_peak(store, {"DECK.DATA": "a" * 64}) is None  # another set of files
+
+
+@pytest.mark.opm
+def test_a_job_memory_below_the_measured_peak_is_refused_before_any_job(small_case, tmp_path):
+    from typer.testing import CliRunner
+
+    from hmflow.cli import app
+
+    case_file = _case(small_case, tmp_path, '\n[cluster]\nmemory = "200MB"\n')
+    store = ArtifactStore(tmp_path / "store")
+    _stored_runs(store, "earlier", deck_file_hashes(load_case(case_file)), [1.1e8, 1.9e8])
+    args = ["run", "--case", str(case_file), "--cluster", "slurm", "--budget", "2",
+            "--campaign", "new", "--storage", str(store.root)]
+    out = CliRunner().invoke(app, args, env={"COLUMNS": "300", "NO_COLOR": "1"})
+    text = " ".join(out.output.split())
+    assert out.exit_code == 2, out.output
+    assert "cluster.memory" in text and "190 MB" in text and "campaign earlier" in text, text
+    assert "memory >= 0.24GB" in text, text  # 1.25 x 190 MB
+    assert not (store.root / "new" / "evaluations").exists()  # nothing simulated
+    assert "Traceback" not in out.output

@@ -87,7 +87,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         hold_name(storage.resolve(), fork or campaign, "campaign")
     c = load_case(case)  # clear errors before any simulator time or Prefect start-up
     refuse(scalar_problems(c))
-    check_cluster(c, task_runner)
+    check_cluster(c, task_runner, storage.resolve())
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     check_inputs(agent, budget, workers, task_runner)
     name = campaign or default_campaign_name(c.name, agent, seed)

@@ -181,7 +181,7 @@ def deploy(name: str = typer.Option("nightly", "--name", help="Deployment name; 
     problems += dask_problems(task_runner, dask_address)
     refuse(problems)
     if target.case is not None:
-        check_cluster(target.case, task_runner)
+        check_cluster(target.case, task_runner, storage.resolve())
     tags = ["hmflow", f"case:{dep.case_name(case)}"]
     if target.flow == "ensemble":
         params = dep.ensemble_parameters(case=case, workers=workers, storage=storage,

@@ -90,7 +90,7 @@ def diagnose(case: Optional[str] = typer.Option(None, "--case", help=CASE_HELP +
         campaign = campaign or from_campaign  # the diagnosis goes into that campaign's report
     case = case or "synthetic"
     c = load_case(case)  # clear errors before any simulator time or Prefect start-up
-    check_cluster(c, task_runner)
+    check_cluster(c, task_runner, storage.resolve())
     check_budget(c, budget, kind_list, calibrated is not None)
     storage = storage.resolve()
     hold_name(storage, campaign or default_campaign_name(c.name), "diagnosis")

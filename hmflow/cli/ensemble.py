@@ -64,7 +64,7 @@ def ensemble(case: str = typer.Option(..., "--case", help="Case TOML file with k
 
     storage = folder("--storage", storage)
     c = load_case(case)  # every problem before Prefect starts or anything runs
-    check_cluster(c, task_runner)
+    check_cluster(c, task_runner, storage.resolve())
     refuse(ensemble_problems(c))
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     check_inputs(workers=workers, task_runner=task_runner)

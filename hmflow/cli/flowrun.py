@@ -28,6 +28,7 @@ from rich.progress import (
 
 from flows.inputs import input_problems
 from hmcore.model.cluster import CLUSTER_KINDS, cluster_problems
+from hmcore.model.fingerprint import deck_file_hashes
 from hmflow.cli.common import console, fail, option, print_problems, refuse
 from hmflow.console import quiet_prefect_lines
 from hmflow.server import temporary_api
@@ -62,18 +63,39 @@ def batch_runner(cluster: Optional[str], task_runner: str, dask_address: Optiona
     return cluster
 
 
-def check_cluster(case, task_runner: str) -> None:
+def check_cluster(case, task_runner: str, storage: Path) -> None:
     """For a batch system's runner: exit 2 with every problem of the case's ``[cluster]``
     against its simulator (walltime, cores; :func:`hmcore.model.cluster.cluster_problems`)
-    before any job is submitted."""
+    and against the highest peak memory ``storage`` measured for runs of this deck
+    (:func:`storage.peaks.measured_peak`), before any job is submitted; when none was
+    measured, say that the memory is left to the batch system."""
     if task_runner not in CLUSTER_KINDS:
         return
+    # storage imports pandas: keeps `hmflow --help` fast
+    from storage import ArtifactStore
+    from storage.peaks import measured_peak
+
+    peak = measured_peak(ArtifactStore(storage), deck_file_hashes(case))
     problems = cluster_problems(case.cluster, case.simulator.timeout_s,
-                                case.simulator.cores_per_run, str(case.source))
+                                case.simulator.cores_per_run, str(case.source),
+                                None if peak is None else peak.bytes)
     if problems:
         print_problems(f"Case {case.source} cannot run its calls in {task_runner} jobs",
                        problems)
+        if peak is not None:
+            console.print(f"(the peak: call {peak.index} of campaign {escape(peak.campaign)}, "
+                          f"the highest of {peak.runs} measured runs of this deck in "
+                          f"{escape(str(storage))})", soft_wrap=True, highlight=False)
         raise typer.Exit(2)
+    if peak is None:
+        console.print(f"[yellow]note[/]: no run of this deck was measured in "
+                      f"{escape(str(storage))} yet: {case.cluster.memory} per job is not "
+                      "checked against a run's peak memory before the jobs are submitted "
+                      "(only the batch system enforces it)", soft_wrap=True, highlight=False)
+    else:
+        console.print(f"memory per job {case.cluster.memory}: a run of this deck peaked at "
+                      f"{peak.bytes / 1e6:.0f} MB (highest of {peak.runs} measured in the "
+                      "store)", highlight=False)
 
 
 def fit_workers(workers: int, threads: int, task_runner: str) -> int:
