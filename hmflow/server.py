@@ -4,7 +4,11 @@ cannot outlive hmflow.
 Prefect starts its own temporary server when no API is configured; that process survived a
 ``kill -9`` of hmflow (6 of 6 tries) and held its port and SQLite file. hmflow starts the same
 server itself (Prefect's own uvicorn command and settings), with Linux's
-``PR_SET_PDEATHSIG``: the kernel kills it the moment hmflow dies, however it dies. It points
+``PR_SET_PDEATHSIG``: the kernel kills it the moment hmflow dies, however it dies. The server
+runs in a session of its own: a signal to hmflow's process group (Ctrl-C in a terminal, a batch
+system's SIGTERM to the job's processes, ``kill -- -PGID``) reaches hmflow alone, which records
+its stop through the server and then stops it; in hmflow's group the server died first and
+hmflow retried the dead API for minutes before it could exit. It points
 ``PREFECT_API_URL`` at it for the command and stops it when the command ends. A user who
 configured a server (``PREFECT_API_URL``) gets that one, untouched.
 """
@@ -56,7 +60,7 @@ def temporary_api() -> Iterator[str | None]:
         [sys.executable, "-m", "uvicorn", "--app-dir", str(app_dir),
          "--factory", "prefect.server.api.server:create_app", "--host", "127.0.0.1",
          "--port", str(port), "--log-level", "error", "--lifespan", "on"],
-        env=env, preexec_fn=_die_with_parent)
+        env=env, preexec_fn=_die_with_parent, start_new_session=True)
     try:
         wait_until_healthy(proc, url, STARTUP_TIMEOUT_S)
         os.environ["PREFECT_API_URL"] = url

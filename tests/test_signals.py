@@ -1,4 +1,4 @@
-"""SIGTERM (``kill PID``, a batch system's time limit) stops `hmflow run` as Ctrl-C does: it
+"""SIGTERM (``kill -- -PGID``, a batch system's time limit) stops `hmflow run` as Ctrl-C does: it
 exits, the temporary Prefect server it started is gone with it, and the same command resumes
 the campaign from its journal; after ``kill -9`` nothing hmflow started is left either (real
 OPM Flow, real Prefect; the default run uses the small synthetic case, conftest.small_case)."""
@@ -39,11 +39,28 @@ def _wait_for_records(journal: Path, n: int, proc: subprocess.Popen, log: Path) 
     assert len(_journaled(journal)) >= n, log.read_text()[-3000:]
 
 
-def _own_server(pgid: int, log: Path) -> None:
-    """hmflow's process group holds the temporary Prefect server it started."""
-    alive = _alive(pgid)
-    assert any("prefect.server.api.server:create_app" in line for line in alive), (
-        alive, log.read_text()[-3000:], os.environ.get("PREFECT_API_URL"))
+def _own_server(pid: int, log: Path) -> int:
+    """The pid of the temporary Prefect server hmflow (``pid``) started: its child, in a
+    session of its own (a signal to hmflow's group must not stop it before hmflow is done)."""
+    out = subprocess.run(["ps", "-eww", "-o", "pid=,ppid=,pgid=,args="], capture_output=True,
+                         text=True).stdout
+    servers = [line.split(None, 3) for line in out.splitlines()
+               if int(line.split()[1]) == pid and "prefect.server.api.server:create_app" in line]
+    assert len(servers) == 1, (out, log.read_text()[-3000:], os.environ.get("PREFECT_API_URL"))
+    server, _, group, _ = servers[0]
+    assert int(group) != pid  # not in hmflow's process group
+    return int(server)
+
+
+def _gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    try:  # a zombie not yet reaped is gone too
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
 
 
 @pytest.mark.opm
@@ -55,9 +72,9 @@ def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaig
     1. ``kill -9``: SIGKILL cannot be caught, so what hmflow started must die with it by
        itself (the temporary Prefect server and the simulators are killed by the kernel,
        PR_SET_PDEATHSIG);
-    2. SIGTERM (``kill PID``, a batch system's time limit) of the resumed run stops it as
-       Ctrl-C does: it exits without a traceback, its temporary server gone with it, the
-       run's logs sent before it stopped;
+    2. SIGTERM to the resumed run's process group (a batch system's time limit, ``kill --
+       -PGID``) stops it as Ctrl-C does: it exits without a traceback, its temporary server
+       gone with it, the run's logs sent before it stopped;
     3. the same command on the session's server resumes from the journal: every call once,
        nothing journaled simulated again.
 
@@ -75,13 +92,14 @@ def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaig
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=log.open("w"), stderr=subprocess.STDOUT,
                             start_new_session=True)
     _wait_for_records(journal, 2, proc, log)
-    _own_server(proc.pid, log)
+    server = _own_server(proc.pid, log)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(timeout=30)
     deadline = time.time() + 20
-    while time.time() < deadline and _alive(proc.pid):
+    while time.time() < deadline and (_alive(proc.pid) or not _gone(server)):
         time.sleep(0.5)
-    assert not _alive(proc.pid), _alive(proc.pid)  # no server, no simulator left behind
+    assert not _alive(proc.pid), _alive(proc.pid)  # no simulator left behind
+    assert _gone(server)  # nor the server
     assert read_holder(lock_path(store, "sig")).pid == proc.pid  # its name's lock left behind
     killed_pid = proc.pid
     killed = _journaled(journal)
@@ -93,8 +111,8 @@ def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaig
     proc = subprocess.Popen(args, cwd=tmp_path, stdout=log.open("w"), stderr=subprocess.STDOUT,
                             start_new_session=True)
     _wait_for_records(journal, len(killed) + 1, proc, log)
-    _own_server(proc.pid, log)
-    os.kill(proc.pid, signal.SIGTERM)
+    server = _own_server(proc.pid, log)
+    os.killpg(proc.pid, signal.SIGTERM)
     proc.wait(timeout=120)
     out = log.read_text()
     assert proc.returncode != 0 and "Traceback" not in out, out[-3000:]
@@ -103,7 +121,8 @@ def test_kill_9_and_sigterm_stop_hmflow_and_its_temporary_server_and_the_campaig
     assert f"took over the lock of sig from pid {killed_pid}" in " ".join(out.split()), out[-3000:]
     assert "Error logging to API" not in out  # logs sent before its server stops
     time.sleep(3)
-    assert not _alive(proc.pid), _alive(proc.pid)  # no server, no simulator left behind
+    assert not _alive(proc.pid), _alive(proc.pid)  # no simulator left behind
+    assert _gone(server)  # nor the server
     # whole records only (each parses, and is the call its name says); with 2 workers a later
     # call can finish before an earlier one, so the journal may have a gap the rerun fills
     before = _journaled(journal)
