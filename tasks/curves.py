@@ -41,10 +41,11 @@ def collect(store_root: str, campaign: str, reference: str | None,
         return None
     case_doc = case.read_json("case.json")
     wells = list(case_doc["wells"])
-    records = results.read_json("records.json")["records"]
+    stored = results.read_json("records.json")
+    records, objective = stored["records"], stored.get("objective", "E")
     by_index = {r["index"]: r for r in records}
-    chosen = choose_members(records, members)
-    best = best_record(records)
+    chosen = choose_members(records, members, objective)  # the best call first
+    best = best_record(records, objective)  # the campaign's best call (tasks.results)
     best_dir = store.latest(campaign, "best")
     frames, calls, skipped = [], {}, {}
 
@@ -82,14 +83,30 @@ def collect(store_root: str, campaign: str, reference: str | None,
     table = forecast_table(calls, wells, floor if truth_known and floor is not None else None)
     curves = pd.concat(frames, ignore_index=True)[["member", "call", "well", "quantity", "days",
                                                    "value", "unit"]]
-    doc = {"kind": chosen.kind.value, "caveat": chosen.kind.caveat,
-           "member_calls": sorted(calls), "requested": members, "truth_known": truth_known,
+    doc = {"kind": chosen.kind.value, "caveat": chosen.kind.caveat, "objective": objective,
+           "member_calls": list(calls), "requested": members, "truth_known": truth_known,
            "truth_run": floor is not None and truth_known, "reference": reference,
            "skipped": skipped}
     return store.put_files(campaign, "curves", {"results": results.ref(),
                                                 "reference": reference, "members": members},
                            {"curves.parquet": curves, "forecast.parquet": table,
                             "forecast.json": doc}, code_version())
+
+
+def stale(store_root: str, campaign: str) -> bool:
+    """Whether ``campaign``'s latest curves were not drawn for its best call: made from
+    other results, or by an hmflow that chose their best case and forecast members by E
+    while the campaign's objective is another (its well panels' "best case" is then the
+    lowest-E call, not the call the report names). A report rebuild collects them again
+    (:func:`collect`, from the run directories)."""
+    store = ArtifactStore(store_root)
+    curves, results = store.latest(campaign, "curves"), store.latest(campaign, "results")
+    if curves is None or results is None:
+        return False
+    doc = curves.read_json("forecast.json")
+    objective = results.read_json("records.json").get("objective", "E")
+    made_from = (curves.manifest.get("inputs") or {}).get("results")
+    return doc.get("objective", "E") != objective or made_from != results.ref()
 
 
 collect_curves = task(name="collect-curves", cache_policy=NO_CACHE)(collect)

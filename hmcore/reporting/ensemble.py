@@ -36,6 +36,7 @@ from hmcore.reporting import ensemble_figures as figs
 from hmcore.reporting.ensemble_truth import FieldTruth
 from hmcore.reporting.html import plottable_curves, plottable_observed, safe_name, volume_text
 from hmcore.simulation.curves import FIELD
+from hmcore.simulation.forecast import inside_band
 
 REPORT_VERSION = 2  # 2: the fields' spread table (2026-11-28)
 """Bump when the report's content changes for the same stored run."""
@@ -135,7 +136,7 @@ def forecast_with_truth(forecast: pd.DataFrame, truth: pd.DataFrame | None) -> p
                         & (truth.days <= float(row.end_days) + 1e-6)].sort_values("days")
             t = float(sel.value.iloc[-1]) if len(sel) else t
         values.append(t if math.isfinite(t) else None)
-        inside.append(bool(row.P90 <= t <= row.P10) if math.isfinite(t) else None)
+        inside.append(inside_band(row.P90, row.P10, t) if math.isfinite(t) else None)
     return out.assign(truth=values, truth_inside=inside)
 
 

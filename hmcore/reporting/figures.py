@@ -164,32 +164,61 @@ def noise_band(quantity: str, y: np.ndarray, sigma: np.ndarray) -> tuple[np.ndar
     return lo, hi
 
 
-def best_so_far(table: pd.DataFrame, floor: float | None, centre: float | None) -> bytes:
-    """Every call's E (valid, penalised, failed marked apart) and the best valid E so far."""
-    fig = Figure(figsize=(8, 4))
-    ax = fig.subplots()
+def best_so_far(table: pd.DataFrame, floor: float | None, centre: float | None,
+                objective: str = "E", references: dict | None = None) -> bytes:
+    """Every call's E (valid, penalised, failed marked apart) and the E of the best call so
+    far. When another ``objective`` chose the best call (the likelihood, a column of
+    ``table``), a panel above draws it the same way, the line it chose by; the E below then
+    follows the call that objective holds best, which is not always the lowest E.
+    ``floor``/``centre``: the reference runs' E; ``references``: their records (``floor``,
+    ``centre`` -> ``E``, ``likelihood``)."""
+    chooses = objective != "E" and objective in table
+    fig = Figure(figsize=(8, 6.5 if chooses else 4))
+    axes = fig.subplots(2, 1, sharex=True) if chooses else [fig.subplots()]
     calls = table["index"].to_numpy(int) + 1
-    ok = table.status == "COMPLETE"
-    ax.semilogy(calls[ok], table.E[ok], ".", color="#1f5fbf", alpha=0.5, label="valid call")
-    bad = table.status == "INVALID"
-    if bad.any():
-        ax.semilogy(calls[bad], table.E[bad].where(table.E[bad] > 0), "x", color="#e69f00",
-                    alpha=0.6, label="penalised (never best)")
-    ax.step(calls, table.best_E_so_far, where="post", color="#1f5fbf", lw=2,
-            label="best so far")
-    for value, label, style in ((floor, "truth / deck E", ":"), (centre, "prior-centre E", "--")):
-        if value is not None and math.isfinite(value) and value > 0:
-            ax.axhline(value, color="#444444", ls=style, lw=1, label=label)
-    fails = table.status == "FAIL"
-    for c in calls[fails]:
-        ax.axvline(c, color="#d62728", alpha=0.25, lw=1)
-    ax.set_xlabel("simulator call")
-    ax.set_ylabel("misfit E (log scale)")
-    ax.set_title("Best-so-far misfit against simulator calls"
-                 + (" (red lines: failed calls)" if fails.any() else ""), fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    ok, bad, fails = (table.status == s for s in ("COMPLETE", "INVALID", "FAIL"))
+    best = _best_positions(table[objective if chooses else "E"], ok)
+    e_of_best = np.where(best >= 0, table.E.to_numpy(float)[np.maximum(best, 0)], np.nan)
+    panels = [(axes[-1], "E", e_of_best, "misfit E (log scale)", floor, centre)]
+    if chooses:
+        refs = references or {}
+        panels.insert(0, (axes[0], objective, table[objective].to_numpy(float)[
+            np.maximum(best, 0)] * np.where(best >= 0, 1.0, np.nan),
+            f"{objective} (log scale; chooses)",
+            (refs.get("floor") or {}).get(objective), (refs.get("centre") or {}).get(objective)))
+    for ax, column, line, ylabel, ref_floor, ref_centre in panels:
+        values = table[column]
+        ax.semilogy(calls[ok], values[ok], ".", color="#1f5fbf", alpha=0.5, label="valid call")
+        if bad.any():
+            ax.semilogy(calls[bad], values[bad].where(values[bad] > 0), "x", color="#e69f00",
+                        alpha=0.6, label="penalised (never best)")
+        label = ("best so far" if column == objective or not chooses
+                 else f"E of the best call so far (by {objective})")
+        ax.step(calls, line, where="post", color="#1f5fbf", lw=2, label=label)
+        for value, name, style in ((ref_floor, f"truth / deck {column}", ":"),
+                                   (ref_centre, f"prior-centre {column}", "--")):
+            if value is not None and math.isfinite(value) and value > 0:
+                ax.axhline(value, color="#444444", ls=style, lw=1, label=name)
+        for c in calls[fails]:
+            ax.axvline(c, color="#d62728", alpha=0.25, lw=1)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8, loc="best")
+    axes[-1].set_xlabel("simulator call")
+    axes[0].set_title("Best so far against simulator calls"
+                      + (" (red lines: failed calls)" if fails.any() else ""), fontsize=10)
     return png(fig)
+
+
+def _best_positions(values: pd.Series, valid: pd.Series) -> np.ndarray:
+    """For each position, the position of the lowest valid value up to it (-1 before the
+    first valid one)."""
+    out, best, low = np.full(len(values), -1), -1, math.inf
+    for k, (v, good) in enumerate(zip(values.to_numpy(float), valid.to_numpy(bool))):
+        if good and math.isfinite(v) and v < low:
+            best, low = k, v
+        out[k] = best
+    return out
 
 
 def cmatch_heatmap(wells: pd.DataFrame, marks: dict[tuple[str, str], str] | None = None

@@ -108,6 +108,7 @@ def render(inputs: ReportInputs) -> tuple[str, dict[str, bytes]]:
         forecast_figures=[n for n in names if n.startswith("forecast")],
         failure_counts=chart_counts(calls), best_params=_best_params(inputs),
         truth=inputs.truth, floor_label=_floor_label(inputs), forecast=_forecast(inputs),
+        beyond_data=_beyond_data(inputs),
         paper_tables=_paper_tables(inputs), diagnosis=_diagnosis(inputs, names),
         sections=_sections(inputs, calls))
     return html, pngs
@@ -150,7 +151,7 @@ def _information(inputs: ReportInputs) -> pd.DataFrame:
 
 
 CAPTIONS = {"well": "observed against simulated, six responses",
-            "best_so_far": "best-so-far misfit against simulator calls",
+            "best_so_far": "best so far against simulator calls",
             "cmatch_heatmap": "C_match per well and response (best case)",
             "parameter_traces": "parameter values call by call",
             "parameters_vs_bounds": "best parameters within their bounds",
@@ -180,8 +181,10 @@ def _figures(inputs: ReportInputs, draw: bool) -> dict[str, bytes]:
                 w, plottable_observed(o), plottable_curves(curves[curves.well == w]),
                 inputs.history_end))
     if len(t):
-        add("best_so_far", lambda: figs.best_so_far(t, inputs.references.get("floor"),
-                                                     inputs.references.get("centre")))
+        choice = inputs.choice or Choice()
+        add("best_so_far", lambda: figs.best_so_far(
+            t, inputs.references.get("floor"), inputs.references.get("centre"),
+            choice.objective, choice.references))
         kinds = chart_counts(inputs.calls)
         if kinds:
             add("failures", lambda: figs.failures(kinds))
@@ -296,6 +299,15 @@ def _best_params(inputs: ReportInputs) -> list[dict]:
     return rows
 
 
+def _beyond_data(inputs: ReportInputs) -> bool:
+    """Whether the runs go on past the last observation (a forecast period with no data);
+    True when it cannot be told (no curves or no history stored)."""
+    curves, observed = inputs.curves, inputs.observed
+    if curves is None or not len(curves) or observed is None or not len(observed):
+        return True
+    return float(curves.days.max()) > float(observed.days.max()) + 0.5
+
+
 def _forecast(inputs: ReportInputs) -> dict | None:
     f, doc = inputs.forecast, inputs.forecast_doc
     if f is None or not len(f) or doc is None:
@@ -314,7 +326,8 @@ def _forecast(inputs: ReportInputs) -> dict | None:
     else:
         show = show.rename(columns={"truth_inside": "truth in [P90, P10]"})
     calls = doc.get("member_calls", [])
-    return {"caveat": doc["caveat"], "members": len(calls),
+    chosen_by = doc.get("objective") if doc.get("kind") == "near_best" else None
+    return {"caveat": doc["caveat"], "members": len(calls), "chosen_by": chosen_by,
             "calls": ", ".join(str(c) for c in calls),
             "end_days": f"{float(f.end_days.max()):g}",
             "table": show.to_html(index=False, border=0, classes="forecast",

@@ -86,6 +86,12 @@ OBJECTIVE_WORDS = {
     "likelihood": "the likelihood (chi2/n: the mean square of the noise-whitened residuals of "
                   "the fitted history; 1 fits within the noise)",
     "E": "E (the paper's misfit)"}
+E_WORDS = ("E, the reference paper's misfit: per response (BHP, oil, water, gas rates, pooled "
+           "over the wells) the mean squared error of the simulated against the observed "
+           "values divided by the observed range, averaged over the responses; 0 is a "
+           "perfect match, and the noise is not in it. The paper's scores per response and well: "
+           "NMSE = sum (y - yhat)^2 / sum y^2, R^2, and C_match = 100 / (1 + NMSE), 100 % "
+           "a perfect match.")
 
 
 @dataclass(frozen=True)
@@ -114,6 +120,7 @@ def choice_markdown(best: dict, choice: Choice) -> list[str]:
     for label, doc in (choice.references or {}).items():
         lines.append(row({"floor": "truth / deck values", "centre": "prior centre"}.get(
             label, label), doc))
+    lines += ["", E_WORDS]
     noise = choice.noise or {}
     if noise.get("refinement"):
         lines += ["", f"The likelihood is under the noise refined {noise['refinement']} time(s) "

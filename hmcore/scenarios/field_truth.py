@@ -48,6 +48,7 @@ from hmcore.fields.prior import draw_prior
 from hmcore.fields.spec import FieldSpec, FilesPrior
 from hmcore.fields.spread import FieldSpread, field_spread
 from hmcore.model.case import Case
+from hmcore.simulation.forecast import inside_band
 from hmcore.scenarios.hidden import noisy_history
 from hmcore.scoring.evaluation import evaluate, simulator_for
 from hmcore.scoring.noise import PUNQ_NOISE
@@ -68,9 +69,6 @@ truth run's :class:`MemberSimulator` reads, and what ``reveal`` compares the mea
 TRUTH_RUN = "truth-run"
 OBSERVED = "observed.csv"
 WORD = 0xFFFFFFFF
-TIE = 1e-5
-"""Values within this share of each other are one value when the truth is judged against a
-band (:attr:`QuantityCheck.inside`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -302,11 +300,8 @@ class QuantityCheck:
 
     @property
     def inside(self) -> bool:
-        """P90 <= truth <= P10 (P90 the low case), the ends widened by :data:`TIE` of the
-        values: a well held at its rate control gives every member and the truth the same
-        cumulative oil, up to the simulator's convergence (measured: 6e-6 of the value)."""
-        tol = TIE * max(abs(self.P90), abs(self.P10), abs(self.truth))
-        return bool(self.P90 - tol <= self.truth <= self.P10 + tol)
+        """The truth inside [P90, P10] (:func:`hmcore.simulation.forecast.inside_band`)."""
+        return inside_band(self.P90, self.P10, self.truth)
 
     @property
     def width(self) -> float:

@@ -28,6 +28,9 @@ import pandas as pd
 from hmcore.simulation.curves import FIELD, value_at_end
 
 DEFAULT_MEMBERS = 10
+TIE = 1e-5
+"""Values within this share of each other are one value when a truth is judged against a
+band (:func:`inside_band`)."""
 FIELD_QUANTITIES = ("FOPT", "FWPT", "FGPT")
 WELL_QUANTITIES = ("WOPT",)
 LABELS = {"FOPT": "field cumulative oil", "FWPT": "field cumulative water",
@@ -56,19 +59,22 @@ class Members:
     indices: tuple[int, ...]  # call indices (journal, from 0), best first for NEAR_BEST
 
 
-def choose_members(records: list[dict], k: int = DEFAULT_MEMBERS) -> Members:
+def choose_members(records: list[dict], k: int = DEFAULT_MEMBERS,
+                   objective: str = "E") -> Members:
     """The runs a forecast is made of (see the module docstring). ``records``: the campaign's
-    journal rows (``index``, ``status``, ``E``, ``params``, ``phase``)."""
+    consolidated rows (``index``, ``status``, ``E``, ``likelihood`` when it was scored,
+    ``params``, ``phase``); the best K by ``objective``, the key that chose the campaign's best
+    call (so that call is the first member)."""
     if k < 1:
         raise ValueError(f"a forecast needs at least 1 member, got k={k}")
-    valid = [r for r in records if r.get("status") == "COMPLETE" and r.get("E") is not None
-             and math.isfinite(r["E"])]
+    valid = [r for r in records if r.get("status") == "COMPLETE"
+             and isinstance(r.get(objective), (int, float)) and math.isfinite(r[objective])]
     posterior = [r for r in valid if r.get("phase") == "posterior"]
     if len(posterior) >= 2:
         return Members(MemberKind.ENSEMBLE, tuple(sorted(r["index"] for r in posterior)))
     seen: set[tuple] = set()
     chosen = []
-    for r in sorted(valid, key=lambda r: (r["E"], r["index"])):
+    for r in sorted(valid, key=lambda r: (r[objective], r["index"])):
         key = tuple(round(float(v), 6) for _, v in sorted(r["params"].items()))
         if key in seen:
             continue
@@ -77,6 +83,14 @@ def choose_members(records: list[dict], k: int = DEFAULT_MEMBERS) -> Members:
         if len(chosen) == k:
             break
     return Members(MemberKind.NEAR_BEST, tuple(chosen))
+
+
+def inside_band(p90: float, p10: float, truth: float) -> bool:
+    """P90 <= truth <= P10 (P90 the low case), the ends widened by :data:`TIE` of the values:
+    a well held at its rate control gives every member and the truth the same cumulative oil,
+    up to the simulator's convergence (measured: 6e-6 of the value)."""
+    tol = TIE * max(abs(p90), abs(p10), abs(truth))
+    return bool(p90 - tol <= truth <= p10 + tol)
 
 
 def forecast_table(curves: dict[int, pd.DataFrame], wells: list[str],
@@ -102,7 +116,7 @@ def forecast_table(curves: dict[int, pd.DataFrame], wells: list[str],
                      "min": float(values.min()), "max": float(values.max()),
                      "end_days": max(ends) if ends else float("nan"),
                      "truth": t if math.isfinite(t) else None,
-                     "truth_inside": (bool(p90 <= t <= p10) if math.isfinite(t) else None)})
+                     "truth_inside": inside_band(p90, p10, t) if math.isfinite(t) else None})
     return pd.DataFrame(rows, columns=["well", "quantity", "label", "members", "P90", "P50",
                                        "P10", "min", "max", "end_days", "truth",
                                        "truth_inside"])
