@@ -18,6 +18,7 @@ from hmcore.calibration.calls import Job, PhysicsPrecheck
 from hmcore.calibration.loop import calibrate
 from hmcore.calibration.methods import make_proposer
 from hmcore.calibration.objective import Objective
+from hmcore.calibration.posterior import DEFAULT_DRAWS, MIN_BUDGET
 from hmcore.calibration.registry import (
     DEFAULT_AGENT,
     METHODS,
@@ -32,6 +33,7 @@ from storage.lock import NameHeldError, NameKind, NameLock
 from tasks.case import prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
 from tasks.noise import store_noise
+from tasks.posterior import draw_posterior
 from tasks.reference import reference_name, reference_settings, run_references
 from tasks.results import archive_best, consolidate, report
 from tasks.simulate import observation_set, simulate, simulate_parameters
@@ -140,13 +142,14 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
                   storage: str = DEFAULT_STORAGE, campaign: str | None = None,
                   agent_settings: dict | None = None, reference: str | None = None,
                   task_runner: Runner = "threads", dask_address: str | None = None,
-                  forked_from: str | None = None) -> dict:
+                  forked_from: str | None = None,
+                  forecast_draws: Annotated[int, Field(ge=0)] | None = None) -> dict:
     """Calibrate ``case`` with ``budget`` simulator calls, ``workers`` at a time.
 
     Args:
         case: Case TOML file (an absolute path on the worker) or the built-in 'synthetic'.
-        agent: Calibration method: sac (hmflow's default), sac-paper (the reference paper's
-            SAC), or a baseline (random, sobol, cmaes, de, bo, lm, esmda).
+        agent: Calibration method: lm (hmflow's default: bounded least squares), sac-paper
+            (the reference paper's SAC), sac, or another (random, sobol, cmaes, de, bo, esmda).
         budget: Simulator calls in all. A rerun with a larger budget continues a random or
             sobol campaign; methods whose plan depends on the budget (sac's final exploit
             call, cmaes, de, esmda, sac-paper) are refused at the first call that differs.
@@ -165,6 +168,9 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
         forked_from: A stored campaign this new one starts from (`hmflow run --fork`): its
             name and fingerprint (case artifact, deck file hashes) are recorded in this
             campaign's campaign.json; it is only read, never written.
+        forecast_draws: Parameter sets drawn from the Laplace posterior at the best call and
+            simulated after the fit, apart from the budget, for the forecast (tasks.posterior);
+            default 20 when the budget is at least 50 calls, else 0 (the best-calls spread).
     """
     logger = get_run_logger()
     try:  # bad input from the UI or the API: one clear line, no traceback, no simulation
@@ -231,8 +237,20 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
 
             calibrate(proposer, loaded.space, evaluate_batch, budget, workers, done,
                       precheck=PhysicsPrecheck.of(loaded), objective=objective, on_refine=refined)
-        results = consolidate(storage, campaign, loaded.space.names, final[0], references)
-        best = archive_best(storage, campaign, results)
+            results = consolidate(storage, campaign, loaded.space.names, final[0], references)
+            best = archive_best(storage, campaign, results)
+            draws = (forecast_draws if forecast_draws is not None
+                     else DEFAULT_DRAWS if budget >= MIN_BUDGET else 0)
+            if draws:
+                plan = draw_posterior(loaded, storage, campaign, seed, draws)
+                logger.info(f"campaign {campaign}: forecast from {len(plan.jobs)} posterior "
+                            "draws, simulated apart from the budget" if plan.jobs else
+                            f"campaign {campaign}: no posterior draws: {plan.reason}")
+                futures = [runner.submit(simulate, simulate_parameters(
+                    loaded, job, storage, campaign, seed, agent, observations,
+                    destination=plan.destination)) for job in plan.jobs]
+                for future in futures:
+                    future.result()
         collect_curves(storage, campaign, reference)
         rep = report(storage, campaign)
         summary = rep.read_json("report.json")

@@ -8,7 +8,7 @@
   a benchmark's journals, a diagnosis's run directories); it never fails the command.
   While it is shown, Prefect's console log lines go through the same rich Console, so that a
   log line is printed above the bar instead of through it.
-* :func:`summary_table`: the end-of-campaign table (best E, the paper's three headline numbers,
+* :func:`summary_table`: the end-of-campaign table (the best call's E, the paper's three headline numbers,
   failed and penalised calls, where the report is).
 
 Calls are numbered from 1 wherever they are shown (journal records store ``index`` from 0).
@@ -263,7 +263,7 @@ def _fmt(v: Any, digits: int) -> str:
 
 
 def summary_table(doc: dict, report: str | Path | None, title: str = "Summary") -> Table:
-    """The end-of-campaign table from a stored ``report.json``: campaign, best E (call N of M,
+    """The end-of-campaign table from a stored ``report.json``: campaign, the best call's E (N of M,
     calls numbered from 1), the best case's macro NMSE, R^2 and C_match (the paper's rounding),
     calls failed / penalised, and ``report`` (the path of the report)."""
     calls = int(doc.get("calls") or 0)
@@ -274,11 +274,12 @@ def summary_table(doc: dict, report: str | Path | None, title: str = "Summary") 
     t.add_column("value", overflow="fold")
     t.add_row("campaign", str(doc.get("campaign", "")))
     if best and best.get("E") is not None:
-        t.add_row("best E", f"{best['E']:.6g} (call {int(best['index']) + 1} of {calls})")
+        t.add_row("E of the best call", f"{best['E']:.6g} (call {int(best['index']) + 1} of "
+                  f"{calls})")
     elif calls:
-        t.add_row("best E", f"none: no valid call of {calls}")
+        t.add_row("E of the best call", f"none: no valid call of {calls}")
     else:
-        t.add_row("best E", "no calibration calls under this name")
+        t.add_row("E of the best call", "no calibration calls under this name")
     if best:  # the paper's three headline numbers of the best case (fitted history)
         macro = best.get("macro") or {}
         t.add_row("macro NMSE", _fmt(macro.get("nmse"), 4))

@@ -1,10 +1,14 @@
 """Curves and forecast of a campaign as a versioned artifact (reads run dirs; no simulator).
 
 ``<campaign>/curves/vN``: ``curves.parquet`` (one row per member, well, quantity and time:
-``member`` (best, centre, truth or deck (the floor run), or call-N), ``call`` (from 1; 0 for the reference runs), then
-:mod:`hmcore.simulation.curves`' columns), ``forecast.parquet`` (:func:`hmcore.simulation.forecast.forecast_table`)
-and ``forecast.json`` (member kind, the caveat to print, member calls, whether the floor run is
-the truth). The report is drawn from it, so it survives the deletion of the run dirs.
+``member`` (best, centre, truth or deck (the floor run), call-N, or draw-N for the N-th
+posterior draw's run), ``call`` (from 1; 0 for the reference runs and the draws), then
+:mod:`hmcore.simulation.curves`' columns), ``forecast.parquet``
+(:func:`hmcore.simulation.forecast.forecast_table`) and ``forecast.json`` (member kind, the
+caveat to print, member calls or draws, the posterior's figures, whether the floor run is
+the truth). The forecast's members: an ES-MDA campaign's posterior ensemble; else the valid
+runs of the posterior draws (:mod:`tasks.posterior`) when there are at least 2; else the best
+calls by the campaign's objective. The report is drawn from it, so it survives the deletion of the run dirs.
 """
 
 from __future__ import annotations
@@ -18,8 +22,14 @@ from prefect.cache_policies import NO_CACHE
 from hmcore.calibration.loop import best_record
 from hmcore.reporting.benchmark import case_truth
 from hmcore.simulation.curves import read_curves
-from hmcore.simulation.forecast import DEFAULT_MEMBERS, choose_members, forecast_table
+from hmcore.simulation.forecast import (
+    DEFAULT_MEMBERS,
+    MemberKind,
+    choose_members,
+    forecast_table,
+)
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version
+from tasks.posterior import POSTERIOR_STEP, journal_name
 from tasks.reference import CENTRE, FLOOR
 
 
@@ -74,21 +84,38 @@ def collect(store_root: str, campaign: str, reference: str | None,
     floor = add("truth" if truth_known else "deck", 0,
                 _summary(scored(refs.get(FLOOR)).get("run_dir")))
     add("centre", 0, _summary(scored(refs.get(CENTRE)).get("run_dir")))
-    for index in chosen.indices:
-        c = add(f"call-{index + 1}", index + 1, _summary(by_index[index].get("run_dir")))
-        if c is not None:
-            calls[index + 1] = c
+    posterior = store.latest(campaign, POSTERIOR_STEP)
+    draws = _valid_draws(store, campaign, posterior)
+    kind, drawn = chosen.kind, None
+    if chosen.kind is MemberKind.NEAR_BEST and len(draws) >= 2:  # the posterior's runs
+        kind, drawn = MemberKind.LAPLACE, posterior.read_json("draws.json")
+        for record in draws:
+            c = add(f"draw-{record['index'] + 1}", 0, _summary(record.get("run_dir")))
+            if c is not None:
+                calls[record["index"] + 1] = c
+    else:
+        for index in chosen.indices:
+            c = add(f"call-{index + 1}", index + 1, _summary(by_index[index].get("run_dir")))
+            if c is not None:
+                calls[index + 1] = c
     if not frames:
         return None
     table = forecast_table(calls, wells, floor if truth_known and floor is not None else None)
     curves = pd.concat(frames, ignore_index=True)[["member", "call", "well", "quantity", "days",
                                                    "value", "unit"]]
-    doc = {"kind": chosen.kind.value, "caveat": chosen.kind.caveat, "objective": objective,
-           "member_calls": list(calls), "requested": members, "truth_known": truth_known,
+    doc = {"kind": kind.value, "caveat": kind.caveat, "objective": objective,
+           "member_calls": [] if drawn else list(calls),
+           "member_draws": list(calls) if drawn else [],
+           "posterior": None if drawn is None else {
+               k: drawn.get(k) for k in ("best_call", "asked", "kept", "tried", "inflation",
+                                         "s2", "free")} | {"valid": len(calls)},
+           "requested": members, "truth_known": truth_known,
            "truth_run": floor is not None and truth_known, "reference": reference,
            "skipped": skipped}
     return store.put_files(campaign, "curves", {"results": results.ref(),
-                                                "reference": reference, "members": members},
+                                                "reference": reference, "members": members,
+                                                "posterior": posterior.ref() if posterior
+                                                else None},
                            {"curves.parquet": curves, "forecast.parquet": table,
                             "forecast.json": doc}, code_version())
 
@@ -107,6 +134,16 @@ def stale(store_root: str, campaign: str) -> bool:
     objective = results.read_json("records.json").get("objective", "E")
     made_from = (curves.manifest.get("inputs") or {}).get("results")
     return doc.get("objective", "E") != objective or made_from != results.ref()
+
+
+def _valid_draws(store: ArtifactStore, campaign: str, posterior: ArtifactVersion | None
+                 ) -> list[dict]:
+    """The valid runs of the ``posterior`` version's draws (:mod:`tasks.posterior`), in draw
+    order; none without one."""
+    if posterior is None:
+        return []
+    rows = EvaluationJournal(store, campaign, journal_name(posterior.version)).rows()
+    return [r for r in rows if r.get("status") == "COMPLETE"]
 
 
 collect_curves = task(name="collect-curves", cache_policy=NO_CACHE)(collect)

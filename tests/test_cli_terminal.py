@@ -71,7 +71,8 @@ def test_run_is_quiet_numbers_calls_from_1_and_ends_on_one_summary_table(tmp_pat
     summary = quiet.stdout[quiet.stdout.rindex("Summary"):]
     doc = json.loads(next(store.glob("*/report/v0001/report.json")).read_text())
     best = doc["best"]
-    assert re.search(rf"best E\s+│ {best['E']:.6g} \(call {best['index'] + 1} of 2\)", summary)
+    assert re.search(rf"E of the best call\s+│ {best['E']:.6g} \(call {best['index'] + 1} of 2\)",
+                     summary)
     assert not re.search(r"call 0\b", text)
     assert f"macro NMSE         │ {best['macro']['nmse']:.4f}" in summary
     assert f"macro R²           │ {best['macro']['r2']:.4f}" in summary
@@ -251,7 +252,7 @@ def test_a_failing_poll_never_fails_the_command_and_the_bar_ends_on_the_last_cou
         time.sleep(0.1)
     assert len(calls) >= 3  # polled again after the failures
     text = console.export_text()
-    assert "4/4" in text and "best E 0.5" in text
+    assert "4/4" in text and "lowest E 0.5" in text
 
 
 def test_prefect_log_lines_go_through_the_bars_console_while_it_runs():

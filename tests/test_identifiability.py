@@ -217,17 +217,21 @@ def test_the_section_says_how_to_get_a_jacobian_when_the_journal_has_none():
 
 # ------------------------------------------------------------------ a real campaign's report
 BUDGET = 6
+DRAWS = 6
 CAMPAIGN = "ident-lm"
 
 
 @pytest.fixture(scope="module")
 def lm_campaign(tmp_path_factory, small_case, prefect_api):
     """A real 6-call least-squares campaign on the small synthetic case: the box's centre and
-    its forward-difference runs, so that its best call has a Jacobian at it or one step away."""
+    its forward-difference runs, so that its best call has a Jacobian at it or one step away;
+    then 6 parameter sets drawn from the posterior there and simulated, apart from the
+    budget."""
     root = tmp_path_factory.mktemp("ident")
     store = root / "store"
     run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
                           "--budget", str(BUDGET), "--agent", "lm", "--workers", "2",
+                          "--forecast-draws", str(DRAWS),
                           "--campaign", CAMPAIGN, "--storage", str(store)], cwd=root,
                          env=cli_env(prefect_api), capture_output=True, text=True, timeout=900, check=False)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
@@ -328,3 +332,55 @@ def test_the_tables_command_prints_the_same_identifiability(lm_campaign, tmp_pat
     text = out.read_text()
     assert "## Identifiability: what the data pin down" in text
     assert all(f"| {p['name']} |" in text for p in doc["parameters"])
+
+
+@pytest.mark.opm
+def test_the_forecast_is_made_of_runs_drawn_from_the_posterior_apart_from_the_budget(
+        lm_campaign, small_case, prefect_api):
+    """The draws stand on the report's posterior (its best call), lie in the box, are
+    simulated into a journal of their own (the budget's journal keeps its 6 calls), and their
+    valid runs are the forecast's members, which the page names; the same command again
+    simulates nothing."""
+    from hmcore.cases import load_case
+    from storage import ArtifactStore, EvaluationJournal
+    from tasks.posterior import journal_name
+
+    store = ArtifactStore(lm_campaign)
+    ident = json.loads(store.latest(CAMPAIGN, "report").file("report.json").read_text())[
+        "identifiability"]
+    posterior = store.latest(CAMPAIGN, "posterior")
+    drawn = posterior.read_json("draws.json")
+    assert drawn["best_call"] == ident["best_call"] and drawn["kept"] == DRAWS, drawn
+    space = load_case(str(small_case)).space
+    for draw in drawn["draws"]:
+        u = np.asarray(draw["action"])
+        assert np.all(np.abs(u) <= 1.0)
+        assert space.to_values(u) == pytest.approx(draw["values"])
+    assert len(EvaluationJournal(store, CAMPAIGN).indices()) == BUDGET  # draws apart
+    runs = EvaluationJournal(store, CAMPAIGN, journal_name(posterior.version)).rows()
+    assert [r["action"] for r in runs] == [d["action"] for d in drawn["draws"]]
+    valid = [r["index"] + 1 for r in runs if r["status"] == "COMPLETE"]
+    curves = store.latest(CAMPAIGN, "curves")
+    forecast = curves.read_json("forecast.json")
+    if len(valid) >= 2:
+        assert forecast["kind"] == "laplace" and forecast["member_draws"] == valid
+        table = curves.read_parquet("forecast.parquet")
+        assert set(table.members) == {len(valid)}
+        html = store.latest(CAMPAIGN, "report").file("report.html").read_text()
+        assert (f"{DRAWS} parameter sets drawn from the Laplace posterior at call "
+                f"{drawn['best_call']}") in " ".join(html.split())
+    else:  # (a box where the physics checks refuse nearly every draw: the best calls)
+        assert forecast["kind"] == "near_best"
+
+    stamps = {p.name: p.stat().st_mtime_ns for p in (lm_campaign / CAMPAIGN).glob(
+        "evaluations*/*.json")}
+    again = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case",
+                            str(small_case), "--budget", str(BUDGET), "--agent", "lm",
+                            "--workers", "2", "--forecast-draws", str(DRAWS), "--campaign",
+                            CAMPAIGN, "--storage", str(lm_campaign)],
+                           env=cli_env(prefect_api), capture_output=True, text=True,
+                           timeout=900, check=False)
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    assert store.latest(CAMPAIGN, "posterior").version == posterior.version
+    assert {p.name: p.stat().st_mtime_ns for p in (lm_campaign / CAMPAIGN).glob(
+        "evaluations*/*.json")} == stamps  # nothing simulated or journaled again

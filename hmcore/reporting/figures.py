@@ -355,7 +355,7 @@ def forecast_fan(curves: pd.DataFrame, quantities: list[tuple[str, str]], histor
     axes = np.atleast_1d(fig.subplots(1, len(quantities)))
     for ax, (q, title) in zip(axes, quantities):
         sel = curves[(curves.well == "FIELD") & (curves.quantity == q)]
-        members = sel[sel.member.str.startswith("call-")]
+        members = sel[sel.member.str.startswith(("call-", "draw-"))]
         if len(members):
             wide = members.pivot_table(index="days", columns="member", values="value")
             for m in wide.columns:

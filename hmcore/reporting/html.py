@@ -308,6 +308,23 @@ def _beyond_data(inputs: ReportInputs) -> bool:
     return float(curves.days.max()) > float(observed.days.max()) + 0.5
 
 
+def _posterior_words(post: dict | None) -> str:
+    """What the posterior draws were, in one sentence (empty without draws)."""
+    if not post:
+        return ""
+    free = post.get("free") or []
+    inflation = post.get("inflation") or 1.0
+    return (f"{post.get('asked')} parameter sets drawn from the Laplace posterior at call "
+            f"{post.get('best_call')} (from {post.get('tried')} tries: the rest fell outside the "
+            f"box or broke a physics check), simulated after the fit, apart from the budget; "
+            f"{post.get('valid')} ran valid and make the band."
+            + (f" The best call's residuals are {inflation:.3g} times the noise's variance "
+               "(chi2 over n - d), so the covariance is widened by that factor."
+               if inflation > 1.0 else "")
+            + (f" The data do not determine {', '.join(free)}: drawn across the box."
+               if free else ""))
+
+
 def _forecast(inputs: ReportInputs) -> dict | None:
     f, doc = inputs.forecast, inputs.forecast_doc
     if f is None or not len(f) or doc is None:
@@ -325,9 +342,10 @@ def _forecast(inputs: ReportInputs) -> dict | None:
         show = show.drop(columns=["truth", "truth_inside"])
     else:
         show = show.rename(columns={"truth_inside": "truth in [P90, P10]"})
-    calls = doc.get("member_calls", [])
+    calls = doc.get("member_calls", []) or doc.get("member_draws", [])
     chosen_by = doc.get("objective") if doc.get("kind") == "near_best" else None
     return {"caveat": doc["caveat"], "members": len(calls), "chosen_by": chosen_by,
+            "posterior": _posterior_words(doc.get("posterior")),
             "calls": ", ".join(str(c) for c in calls),
             "end_days": f"{float(f.end_days.max()):g}",
             "table": show.to_html(index=False, border=0, classes="forecast",

@@ -259,14 +259,14 @@ def heldout_markdown(best: dict, case_doc: dict, info: pd.DataFrame) -> list[str
 
 
 def convergence_markdown(table: pd.DataFrame, choice: Choice) -> list[str]:
-    """Best E (and the choosing objective's best) so far at a quarter, half, three quarters
-    and all of the calls."""
+    """The lowest E of any valid call (and the choosing objective's best) so far at a quarter,
+    half, three quarters and all of the calls."""
     n = len(table)
     both = choice.objective != "E" and "best_objective_so_far" in table
     trace = table[["index", "best_E_so_far"] + (["best_objective_so_far"] if both else [])
                   ].dropna()
     marks = sorted({max(1, n // 4), max(1, n // 2), max(1, 3 * n // 4), n})
-    lines = ["### Convergence", "", "| calls | best E so far |"
+    lines = ["### Convergence", "", "| calls | lowest E so far (any valid call) |"
              + (f" best {choice.objective} so far (chooses) |" if both else ""),
              "|---|---|" + ("---|" if both else "")]
     for m in marks:

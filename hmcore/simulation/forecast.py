@@ -13,7 +13,9 @@ them when the case's truth is known, with whether it falls inside [P90, P10].
 The spread of near-best candidates is not a calibrated posterior: they are the K best points
 one optimiser visited, not samples from the probability of the parameters given the data.
 Only an ensemble method's posterior (ES-MDA, approximately: Gaussian and linear assumptions)
-is read as one. :data:`MemberKind` says which; the report prints the matching sentence.
+and the runs of draws from the Laplace posterior at the best call (:mod:`tasks.posterior`,
+simulated after the fit: a campaign of at least 50 calls with a Jacobian at its best call) are
+read as one. :data:`MemberKind` says which; the report prints the matching sentence.
 """
 
 from __future__ import annotations
@@ -40,9 +42,18 @@ LABELS = {"FOPT": "field cumulative oil", "FWPT": "field cumulative water",
 class MemberKind(enum.Enum):
     NEAR_BEST = "near_best"      # the K best valid calls of an optimiser
     ENSEMBLE = "ensemble"        # an ensemble method's posterior members
+    LAPLACE = "laplace"          # runs of parameter sets drawn from the Laplace posterior
 
     @property
     def caveat(self) -> str:
+        if self is MemberKind.LAPLACE:
+            return ("Members: runs of parameter sets drawn from the Laplace posterior at the "
+                    "best call (the Gaussian of the linearised fit, within the parameter box "
+                    "and the physics checks), simulated after the fit, apart from the budget. "
+                    "It approximates the posterior of the case's parameters given the history "
+                    "when the residuals are near linear in them; it knows nothing of what the "
+                    "case leaves fixed, so read it as the band of these parameters' "
+                    "uncertainty, not of the model's.")
         if self is MemberKind.ENSEMBLE:
             return ("Members: the ES-MDA posterior ensemble. It approximates the posterior "
                     "under ES-MDA's Gaussian, near-linear assumptions; read the band as an "

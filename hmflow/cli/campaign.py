@@ -11,6 +11,7 @@ import typer
 from rich.markup import escape
 
 from flows.inputs import scalar_problems
+from hmcore.calibration.posterior import DEFAULT_DRAWS, MIN_BUDGET
 from hmcore.calibration.registry import DEFAULT_AGENT, default_campaign_name
 from hmflow.cli.common import (
     CASE_HELP,
@@ -73,6 +74,12 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                                            "is now, recording that it comes from --campaign "
                                            "(which is left untouched); for a model changed "
                                            "since that campaign started"),
+        forecast_draws: Optional[int] = typer.Option(
+            None, "--forecast-draws", min=0, help="Parameter sets drawn from the posterior at "
+            "the best call and simulated after the fit, apart from the budget, for the "
+            f"forecast (default {DEFAULT_DRAWS} when the budget is at least {MIN_BUDGET} calls "
+            "and the method leaves a Jacobian at its best call, as lm does; 0: the forecast "
+            "is the best calls' spread)"),
         verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Run a calibration campaign as a Prefect flow and print the best case and the tables."""
     prefect_environment(verbose)
@@ -121,6 +128,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
                                        workers=workers, seed=seed, storage=str(storage),
                                        campaign=name, task_runner=task_runner,
                                        dask_address=dask_address,
+                                       forecast_draws=forecast_draws,
                                        **({"forked_from": forked_from} if forked_from else {}))
         except KeyboardInterrupt:
             console.print(f"campaign [bold]{name}[/] stopped with {len(journal.indices())} "

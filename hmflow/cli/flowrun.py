@@ -261,13 +261,14 @@ def flow_refused() -> type[Exception]:
 
 
 def progress_columns(kind: str) -> list:
-    """The progress bar's columns: ``run`` (calls of the budget, best E), ``bench`` (calls of
-    methods x seeds x budget, the method and seed running), ``diagnose`` (simulations of the
-    budget) and ``diagnose-open`` (no budget: a spinner with the count)."""
+    """The progress bar's columns: ``run`` (calls of the budget, the lowest E so far),
+    ``bench`` (calls of methods x seeds x budget, the method and seed running), ``diagnose``
+    (simulations of the budget) and ``diagnose-open`` (no budget: a spinner with the
+    count)."""
     count = TextColumn("{task.completed}/{task.total}")
     if kind == "run":
         return [TextColumn("[bold]calls"), BarColumn(), count,
-                TextColumn("best E {task.fields[best]}"), TimeElapsedColumn(), TextColumn("ETA"),
+                TextColumn("lowest E {task.fields[best]}"), TimeElapsedColumn(), TextColumn("ETA"),
                 TimeRemainingColumn()]
     if kind == "bench":
         return [TextColumn("[bold]calls"), BarColumn(), count, TimeElapsedColumn(),
