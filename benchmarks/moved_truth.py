@@ -293,7 +293,8 @@ def main() -> None:
                         subprocess.run([str(Path(sys.executable).parent / "hmflow"), "run",
                                         "--case", str(case), "--agent", method, "--budget",
                                         str(args.budget), "--workers", str(args.workers),
-                                        "--seed", "0", "--campaign", name, "--storage",
+                                        "--seed", "0", "--forecast-draws", "0",
+                                        "--campaign", name, "--storage",
                                         str(store)], check=True)
                         ran += 1
                         found = figures(store, name, args.budget)

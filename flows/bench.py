@@ -109,8 +109,9 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
             continue
         logger.info(f"benchmark {bench}: {method} seed {seed} ({campaign})")
         campaign_flow(case=case, agent=method, budget=budget, workers=workers, seed=seed,
-               storage=storage, campaign=campaign, reference=reference,
-               task_runner=task_runner, dask_address=dask_address)
+                      storage=storage, campaign=campaign, reference=reference,
+                      task_runner=task_runner, dask_address=dask_address,
+                      forecast_draws=0)  # equal budgets and wall times: no draws after
     version = consolidate_bench(storage, bench, campaigns, reference, loaded.name, budget,
                                 case_truth(loaded.source) is not None, workers, loaded)
     return {"benchmark": bench, "storage": storage, "artifact": version.ref(),
