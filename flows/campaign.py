@@ -33,7 +33,7 @@ from storage.lock import NameHeldError, NameKind, NameLock
 from tasks.case import prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
 from tasks.noise import store_noise
-from tasks.posterior import draw_posterior
+from tasks.posterior import draw_posterior, plan_jacobian
 from tasks.reference import reference_name, reference_settings, run_references
 from tasks.results import archive_best, consolidate, report
 from tasks.simulate import observation_set, simulate, simulate_parameters
@@ -242,6 +242,16 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
             draws = (forecast_draws if forecast_draws is not None
                      else DEFAULT_DRAWS if budget >= MIN_BUDGET else 0)
             if draws:
+                jacobian = plan_jacobian(loaded, storage, campaign)  # none when lm made one
+                if jacobian.jobs:
+                    logger.info(f"campaign {campaign}: {len(jacobian.jobs)} finite-difference "
+                                f"runs at call {jacobian.best_index + 1} for its posterior, "
+                                "apart from the budget")
+                futures = [runner.submit(simulate, simulate_parameters(
+                    loaded, job, storage, campaign, seed, agent, observations,
+                    destination=jacobian.destination)) for job in jacobian.jobs]
+                for future in futures:
+                    future.result()
                 plan = draw_posterior(loaded, storage, campaign, seed, draws)
                 logger.info(f"campaign {campaign}: forecast from {len(plan.jobs)} posterior "
                             "draws, simulated apart from the budget" if plan.jobs else

@@ -1,6 +1,8 @@
 """A campaign's forecast members from its posterior: parameter sets drawn from the Laplace
 posterior at its best call (:mod:`hmcore.calibration.posterior`), simulated after the fit,
-apart from the budget.
+apart from the budget; and, first, the finite-difference runs that posterior needs when the
+method left no Jacobian at the best call (:func:`plan_jacobian`: one per parameter, in the
+journal ``jacobian-<best call>``, run directories in ``jacobian-runs/``).
 
 ``<campaign>/posterior/vN``: ``draws.json`` (the best call the draws stand on, the stencil
 of its Jacobian, the inflation, the draws asked for and kept, the parameters the data leave
@@ -26,12 +28,13 @@ from prefect.cache_policies import NO_CACHE
 from hmcore.calibration.calls import Job, PhysicsPrecheck
 from hmcore.calibration.posterior import laplace_draws
 from hmcore.model.case import Case
-from hmcore.reporting.identifiability import load_identifiability
+from hmcore.reporting.identifiability import jacobian_journal, load_identifiability
 from storage import ArtifactStore, ArtifactVersion, code_version, to_jsonable
 from tasks.simulate import Destination
 
 POSTERIOR_STEP = "posterior"
 POSTERIOR_RUNS = "posterior-runs"
+JACOBIAN_RUNS = "jacobian-runs"
 PHASE = "posterior-draw"
 STREAM = 0x504F5354  # "POST": the draws' own stream of the campaign's seed
 
@@ -104,3 +107,51 @@ def draw_posterior(case: Case, store_root: str, campaign: str, seed: int,
 def _write(directory: Path, doc: dict) -> None:
     (directory / "draws.json").write_text(json.dumps(to_jsonable(doc, "draws.json"), indent=1,
                                                      sort_keys=True))
+
+
+STEP = 0.05
+"""The Jacobian's finite-difference step after the fit, in scaled units (2.5 % of a range;
+within :data:`hmcore.scoring.identifiability.MAX_STENCIL_STEP`)."""
+
+
+@dataclass(frozen=True)
+class JacobianPlan:
+    """The finite-difference runs a campaign's best call still needs for its posterior
+    (``jobs``, one per parameter, into :attr:`destination`); none when its calls hold a
+    stencil there, or it has no valid call."""
+
+    jobs: tuple[Job, ...]
+    best_index: int | None
+
+    @property
+    def destination(self) -> Destination:
+        return Destination(journal=jacobian_journal(self.best_index), runs=JACOBIAN_RUNS,
+                           run_name=f"{self.best_index + 1:06d}-" + "{index:02d}")
+
+
+
+@task(name="plan-jacobian", cache_policy=NO_CACHE)
+def plan_jacobian(case: Case, store_root: str, campaign: str) -> JacobianPlan:
+    """One forward step of :data:`STEP` along each parameter from the best call (backward
+    where forward would leave the box or break a physics check its values decide), when the
+    campaign's calls hold no stencil there (:func:`load_identifiability`): the runs a
+    posterior needs that the method did not make (a campaign ended mid-descent, a method
+    without derivatives), simulated apart from the budget."""
+    store = ArtifactStore(store_root)
+    found = load_identifiability(store, campaign)
+    if found is None or found.result is not None or found.best_index is None:
+        return JacobianPlan((), None if found is None else found.best_index)
+    results = store.latest(campaign, "results")
+    best = next(r for r in results.read_json("records.json")["records"]
+                if r["index"] == found.best_index)
+    space, precheck = case.space, PhysicsPrecheck.of(case)
+    u = np.asarray(best["action"], float)
+    jobs = []
+    for k in range(space.dim):
+        for step in ((STEP, -STEP) if u[k] + STEP <= 1.0 else (-STEP, STEP)):
+            x = u.copy()
+            x[k] += step
+            if abs(x[k]) <= 1.0 and not precheck(space.to_values(x)):
+                break
+        jobs.append(Job(k, space.to_values(x), tuple(float(v) for v in x), 0, "jacobian"))
+    return JacobianPlan(tuple(jobs), found.best_index)

@@ -89,11 +89,12 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     assert scaled.parameter.keywords == ({"water": "SWOF", "gas": "SGOF"}[phase],)
 
     (contact,) = generate("contact", seed, info, space, truth)
-    assert contact.kind == "unexplained" and contact.parameter.keywords == ("EQUIL",)
-    assert 0.003 <= abs(contact.value - 1.0) <= 0.008
+    assert contact.kind == "contact_depth" and contact.parameter.keywords == ("EQUIL",)
+    assert contact.parameter.item == 3 and 0.003 <= abs(contact.value - 1.0) <= 0.008
+    assert contact.candidate.details["expect_ids"] == ["contact_depth:woc"]
 
     (pvt,) = generate("pvt", seed, info, space, truth)
-    assert pvt.kind == "unexplained" and pvt.parameter.keywords == ("RSVD",)
+    assert pvt.kind == "solution_gas" and pvt.parameter.keywords == ("RSVD",)
     assert pvt.parameter.kind == "table_multiply" and 0.85 <= pvt.value <= 0.93
 
     two = generate("two_kinds", seed, info, space, truth)
@@ -199,9 +200,11 @@ def test_the_judge_asks_each_effect_its_family_and_wells(synthetic):
     assert others and not any(judge_effects(_doc([plane(o)]), [fault])["found"]
                               for o in others)  # a plane that parts other wells
     (contact,) = generate("contact", 1, info, space, truth)
-    unexplained = {"id": "unexplained", "kind": "unexplained", "wells": ["PROD1"], "layers": [],
-                   "chi2": None}
-    assert judge_effects(_doc([], first=unexplained), [contact])["found"]
+    woc = {"id": "contact_depth:woc", "kind": "contact_depth", "wells": [], "layers": [],
+           "chi2": 45.0}
+    goc = {**woc, "id": "contact_depth:goc"}
+    assert judge_effects(_doc([woc]), [contact])["found"]
+    assert not judge_effects(_doc([goc]), [contact])["found"]  # the other contact
     assert not judge_effects(_doc([right]), [contact])["found"]  # a confident wrong name
     a, b = generate("two_kinds", 2, info, space, truth)
 

@@ -384,3 +384,37 @@ def test_the_forecast_is_made_of_runs_drawn_from_the_posterior_apart_from_the_bu
     assert store.latest(CAMPAIGN, "posterior").version == posterior.version
     assert {p.name: p.stat().st_mtime_ns for p in (lm_campaign / CAMPAIGN).glob(
         "evaluations*/*.json")} == stamps  # nothing simulated or journaled again
+
+
+@pytest.mark.opm
+def test_a_method_without_a_jacobian_gets_one_after_the_fit_for_its_posterior(
+        tmp_path, small_case, prefect_api):
+    """CMA-ES leaves no finite-difference stencil: one run per parameter is made at its best
+    call after the fit, apart from the budget, and the report's posterior and the draws stand
+    on it."""
+    from hmcore.reporting.identifiability import jacobian_journal
+    from storage import ArtifactStore, EvaluationJournal
+    from tasks.posterior import STEP
+
+    store_root = tmp_path / "store"
+    run = subprocess.run([sys.executable, "-m", "hmflow.cli", "run", "--case", str(small_case),
+                          "--budget", "3", "--agent", "cmaes", "--workers", "2",
+                          "--forecast-draws", "2", "--campaign", "ident-cmaes", "--storage",
+                          str(store_root)], cwd=tmp_path, env=cli_env(prefect_api),
+                         capture_output=True, text=True, timeout=900, check=False)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    store = ArtifactStore(store_root)
+    doc = json.loads(store.latest("ident-cmaes", "report").file("report.json").read_text())
+    ident, best = doc["identifiability"], doc["best"]["index"]
+    assert len(EvaluationJournal(store, "ident-cmaes").indices()) == 3  # the budget's calls
+    runs = EvaluationJournal(store, "ident-cmaes", jacobian_journal(best)).rows()
+    base = np.asarray(EvaluationJournal(store, "ident-cmaes").get(best)["action"])
+    assert len(runs) == len(base)  # one per parameter
+    for k, r in enumerate(runs):
+        step = np.asarray(r["action"]) - base
+        assert np.count_nonzero(np.abs(step) > 1e-12) == 1 and abs(step[k]) == pytest.approx(
+            STEP)
+    assert ident["computed"] and ident["jacobian_base_call"] == best + 1
+    assert ident["jacobian_run_labels"] == [f"J-run {k + 1}" for k in range(len(base))]
+    drawn = store.latest("ident-cmaes", "posterior").read_json("draws.json")
+    assert drawn["best_call"] == best + 1 and drawn["kept"] == 2

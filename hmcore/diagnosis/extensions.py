@@ -25,6 +25,11 @@ Families (see :func:`build_candidates`):
                             factor on each (``...:scale``, capped at 1): its level; and a
                             shift of each curve's critical saturation (``...:endpoint``,
                             SWCR / SGCR): where it starts to flow
+``contact_depth``           the depth of the initial water-oil (EQUIL item 3) and gas-oil
+                            (item 5) contact, each a factor on the depth of every EQUIL record
+                            (one per equilibration region): where the phases start
+``solution_gas``            the initial dissolved gas-oil ratio, a factor on the Rs column of
+                            RSVD (or the bubble point of PBVD): what the oil holds in solution
 ``productivity_change``     the productivity index of one well multiplied from a report date
                             on (``WPIMULT`` in the schedule, kind ``wpimult`` with
                             ``start_day``): damage, scale or a stimulation during the history.
@@ -51,7 +56,8 @@ from hmcore.ordering import natural_key
 
 KINDS = ("well_skin", "regional_permeability", "layer_permeability", "vertical_permeability",
          "aquifer_strength", "fault_transmissibility", "relative_permeability",
-         "productivity_change")
+         "productivity_change", "contact_depth", "solution_gas")
+"""The families (appended only: a kind's index seeds its hidden effects' draws)."""
 
 REGION_HALF_WIDTH = 3
 """Half width (cells) of the box of a regional permeability candidate."""
@@ -69,15 +75,22 @@ RELPERM_ENDPOINT_PROBE = 0.05
 its critical saturation has no room below it."""
 WELL_SKIN_BOUNDS = (-5.0, 30.0)
 PI_BOUNDS = (0.05, 20.0)
+CONTACT_BOUNDS = (0.98, 1.02)
+"""Factor on a contact's depth: +-2 %, some 50 m at 2,500 m, more than a reservoir's oil
+column is often thick."""
+SOLUTION_GAS_BOUNDS = (0.5, 1.0)
+"""Factor on the initial Rs (or bubble point): at most the deck's, since oil at a gas cap is
+saturated, and more gas than saturated oil holds is no initial state (the high end is a
+physical limit, :data:`LIMIT_ENDS`)."""
 LIMIT_ENDS = {"fault_transmissibility": ("low", "high"), "vertical_permeability": ("low",),
-              "aquifer_strength": ("low",)}
+              "aquifer_strength": ("low",), "solution_gas": ("high",)}
 """The ends of a family's range that are a physical limit - a sealed fault (and no fault), a
 layer that is a vertical barrier, next to no aquifer: a fit there is a complete effect. At any
 other end (:func:`open_end`) the data ask the family for more than its range holds."""
 PROBE = {"well_skin": 6.0, "regional_permeability": 0.4, "layer_permeability": 0.4,
          "vertical_permeability": 0.1, "aquifer_strength": 0.3,
          "fault_transmissibility": 0.01, "relative_permeability": 1.6,
-         "productivity_change": 0.5}
+         "productivity_change": 0.5, "contact_depth": 1.005, "solution_gas": 0.9}
 """Finite-difference probe: skin increment, or factor (multipliers), or exponent."""
 
 
@@ -382,6 +395,45 @@ def relative_permeability(info: DeckInfo, space: ParameterSpace,
     return out
 
 
+def contact_depth(info: DeckInfo, space: ParameterSpace,
+                  values: dict[str, float]) -> list[Candidate]:
+    """The water-oil and the gas-oil contact, each where the deck's EQUIL gives one (a
+    defaulted item, or a GOC above the reservoir's top that the datum sits at, still moves:
+    the factor applies to the depth written)."""
+    records = deck_blocks(info).get("EQUIL", [])
+    out = []
+    for item, short, contact in ((3, "woc", "water-oil"), (5, "goc", "gas-oil")):
+        if not any(len(r) >= item and r[item - 1] != "1*" for r in records):
+            continue
+        p = Parameter(name=f"{short}_depth", kind="item_multiply", keywords=("EQUIL",),
+                      item=item, low=CONTACT_BOUNDS[0], high=CONTACT_BOUNDS[1],
+                      description=f"factor on the initial {contact} contact depth (EQUIL item "
+                                  f"{item})")
+        out.append(Candidate(f"contact_depth:{short}", "contact_depth", p, (), (),
+                             f"the initial {contact} contact is deeper or shallower than the "
+                             f"model says (EQUIL item {item})", 1.0, PROBE["contact_depth"],
+                             {"contact": short, "item": item}))
+    return out
+
+
+def solution_gas(info: DeckInfo, space: ParameterSpace,
+                 values: dict[str, float]) -> list[Candidate]:
+    """The initial dissolved gas: RSVD's Rs column, else PBVD's bubble points."""
+    names = info.keyword_names
+    table = next((t for t in ("RSVD", "PBVD") if t in names), None)
+    if table is None:
+        return []
+    what = "dissolved gas-oil ratio" if table == "RSVD" else "bubble point pressure"
+    p = Parameter(name="rs_initial" if table == "RSVD" else "pb_initial",
+                  kind="table_multiply", keywords=(table,), item=2,
+                  low=SOLUTION_GAS_BOUNDS[0], high=SOLUTION_GAS_BOUNDS[1],
+                  description=f"factor on the initial {what} ({table} item 2)")
+    return [Candidate(f"solution_gas:{table.lower()}", "solution_gas", p, (), (),
+                      f"the initial oil holds less dissolved gas than the model says (the "
+                      f"{what} of {table}, a fluid property)", 1.0, PROBE["solution_gas"],
+                      {"table": table})]
+
+
 def critical_room(info: DeckInfo, table: str) -> float:
     """How far (saturation) the critical saturation of column 2 of ``table`` (SWOF / SWFN /
     SGOF / SGFN) can move down before it reaches the table's first row: the least over the
@@ -426,7 +478,8 @@ FAMILIES = {"well_skin": well_skin, "regional_permeability": regional_permeabili
             "aquifer_strength": aquifer_strength,
             "fault_transmissibility": fault_transmissibility,
             "relative_permeability": relative_permeability,
-            "productivity_change": productivity_change}
+            "productivity_change": productivity_change, "contact_depth": contact_depth,
+            "solution_gas": solution_gas}
 
 
 def build_candidates(info: DeckInfo, space: ParameterSpace, values: dict[str, float] | None = None,

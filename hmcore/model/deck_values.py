@@ -24,7 +24,7 @@ few keywords :func:`deck_blocks` looks for."""
 
 def deck_blocks(info: DeckInfo) -> dict[str, list[list[str]]]:
     """Records of selected keywords in the deck (include files followed)."""
-    wanted = {"AQUCT", "AQUFETP", "COMPDAT", "SWOF", "SWFN", "SGOF", "SGFN"}
+    wanted = {"AQUCT", "AQUFETP", "COMPDAT", "SWOF", "SWFN", "SGOF", "SGFN", "EQUIL"}
     found: dict[str, list[list[str]]] = {}
     seen: set[Path] = set()
 

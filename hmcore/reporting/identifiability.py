@@ -43,9 +43,12 @@ from hmcore.scoring.identifiability import (
     stencil_jacobian,
 )
 from hmcore.scoring.observations import ObservationSet
-from storage import ArtifactStore
+from storage import ArtifactStore, EvaluationJournal
 from storage.jsonable import to_jsonable
 
+JACOBIAN_OFFSET = 1_000_000
+"""Where the runs of a Jacobian made after the fit (:func:`jacobian_journal`) sit among the
+calls' indices: run k of that journal is index ``JACOBIAN_OFFSET + k``."""
 WHITENED = "whitened"
 """Residual source: recomputed from the records' simulated values under the final noise."""
 STORED = "stored"
@@ -157,9 +160,25 @@ def hint(case_source: str) -> str:
     return shlex.join(["hmflow", "run", "--case", case_source, "--agent", "lm"])
 
 
+def jacobian_journal(best_index: int) -> str:
+    """The journal of the finite-difference runs made after the fit at call ``best_index``
+    (0-based) when the campaign's own calls hold no stencil there (:mod:`tasks.posterior`),
+    outside the budget."""
+    return f"jacobian-{best_index + 1:06d}"
+
+
+def call_label(index: int) -> str:
+    """A stencil run's name for a reader: ``call N`` of the campaign, or ``J-run k`` of the
+    Jacobian made after the fit."""
+    if index >= JACOBIAN_OFFSET:
+        return f"J-run {index - JACOBIAN_OFFSET + 1}"
+    return f"call {index + 1}"
+
+
 def load_identifiability(store: ArtifactStore, campaign: str) -> Finding | None:
-    """The identifiability of a stored campaign's best call, from its stored records, case and
-    final noise (None when it has no results)."""
+    """The identifiability of a stored campaign's best call, from its stored records, the
+    runs of a Jacobian made there after the fit (:func:`jacobian_journal`, at indices from
+    :data:`JACOBIAN_OFFSET`), its case and final noise (None when it has no results)."""
     results = store.latest(campaign, "results")
     case = store.latest(campaign, "case")
     if results is None or case is None:
@@ -182,6 +201,8 @@ def load_identifiability(store: ArtifactStore, campaign: str) -> Finding | None:
                               summary, case_doc.get("fit_history_end_days"),
                               case_doc.get("time_tolerance_days", 30.0))
     n_noise = (doc.get("noise") or {}).get("n_noise") or (obs.n_noise("fit") if obs else None)
+    after = EvaluationJournal(store, campaign, jacobian_journal(int(best["index"]))).rows()
+    records = records + [{**r, "index": JACOBIAN_OFFSET + int(r["index"])} for r in after]
     return assess(records, case_doc["parameters"], int(best["index"]), obs, n_noise, agent)
 
 
@@ -266,13 +287,13 @@ def summary_sentences(finding: Finding) -> list[str]:
     found, st = finding.result, finding.stencil
     post = found.laplace
     d = len(found.names)
-    runs = ", ".join(str(j + 1) for j in st.runs)
+    runs = ", ".join(call_label(j) for j in st.runs)
     if st.base == finding.best_index:
-        at = f"at the best call (call {st.base + 1}; from calls {runs}"
+        at = f"at the best call (call {st.base + 1}; from {runs}"
     else:
         at = (f"at call {st.base + 1}: the best call (call {finding.best_index + 1}) has no "
               f"full stencil, call {st.base + 1} is the nearest call that has one, "
-              f"{st.distance:.3g} scaled units away (from calls {runs}")
+              f"{st.distance:.3g} scaled units away (from {runs}")
     source = ("the noise-whitened residuals of the fitted history under the noise the campaign "
               "ended with" if finding.source == WHITENED else
               "the residuals stored in the records (a journal from before records kept "
@@ -351,7 +372,9 @@ def identifiability_document(finding: Finding | None,
     post = found.laplace
     inside = truth_inside(found, truth)
     doc.update({
-        "jacobian_base_call": st.base + 1, "jacobian_runs": [j + 1 for j in st.runs],
+        "jacobian_base_call": st.base + 1,
+        "jacobian_runs": [j + 1 if j < JACOBIAN_OFFSET else None for j in st.runs],
+        "jacobian_run_labels": [call_label(j) for j in st.runs],
         "steps_scaled": list(st.steps), "base_distance_scaled": st.distance,
         "residuals": finding.source, "n": post.n, "chi2": post.chi2,
         "chi2_per_dof": post.s2, "scaled_by_residual_variance": False, "rank": post.rank,

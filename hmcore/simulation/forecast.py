@@ -14,7 +14,7 @@ The spread of near-best candidates is not a calibrated posterior: they are the K
 one optimiser visited, not samples from the probability of the parameters given the data.
 Only an ensemble method's posterior (ES-MDA, approximately: Gaussian and linear assumptions)
 and the runs of draws from the Laplace posterior at the best call (:mod:`tasks.posterior`,
-simulated after the fit: a campaign of at least 50 calls with a Jacobian at its best call) are
+simulated after the fit: a campaign of at least 50 calls) are
 read as one. :data:`MemberKind` says which; the report prints the matching sentence.
 """
 

@@ -77,9 +77,9 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
         forecast_draws: Optional[int] = typer.Option(
             None, "--forecast-draws", min=0, help="Parameter sets drawn from the posterior at "
             "the best call and simulated after the fit, apart from the budget, for the "
-            f"forecast (default {DEFAULT_DRAWS} when the budget is at least {MIN_BUDGET} calls "
-            "and the method leaves a Jacobian at its best call, as lm does; 0: the forecast "
-            "is the best calls' spread)"),
+            f"forecast (default {DEFAULT_DRAWS} when the budget is at least {MIN_BUDGET} calls; "
+            "first one finite-difference run per parameter at the best call when the method "
+            "left no Jacobian there; 0: the forecast is the best calls' spread)"),
         verbose: bool = typer.Option(False, "--verbose", help=VERBOSE_HELP)) -> None:
     """Run a calibration campaign as a Prefect flow and print the best case and the tables."""
     prefect_environment(verbose)
