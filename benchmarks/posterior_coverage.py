@@ -11,7 +11,8 @@ truth is drawn inside the box (issue 44's measurement).
   box until no physics check fires (``default_rng([S, 23])``); one OPM Flow run each, written
   once to ``OUT/synthetic-hidden-S/``.
 * **Campaigns**: ``hmflow run --agent lm --budget B --forecast-draws D --seed 0`` in
-  ``OUT/store`` (a stopped one resumes with the same command).
+  ``OUT/store``, run every time (a finished one resumes with no call; a stopped one where it
+  stopped).
 * **Figures**, per case, from the campaign's stored report and curves: how many of the five
   95 % intervals hold the truth, the pairs the report names, the forecast's kind and members,
   and for field cumulative oil (and water and gas) at the schedule's end: P90, P50, P10, the
@@ -150,14 +151,14 @@ def main() -> None:
     for seed in args.seeds:
         case = make_case(out, seed)
         name = f"synthetic-hidden-lm-b{args.budget}-d{args.draws}-{seed}"
-        found = figures(store, name) if (out / "store" / name / "report").is_dir() else None
-        if found is None:
-            subprocess.run([str(Path(sys.executable).parent / "hmflow"), "run", "--case",
-                            str(case), "--agent", "lm", "--budget", str(args.budget),
-                            "--forecast-draws", str(args.draws), "--workers",
-                            str(args.workers), "--seed", "0", "--campaign", name,
-                            "--storage", str(out / "store")], check=True)
-            found = figures(store, name)
+        # always the command: a finished campaign resumes with no call, its posterior runs
+        # (the Jacobian, the draws) made if they are not yet
+        subprocess.run([str(Path(sys.executable).parent / "hmflow"), "run", "--case",
+                        str(case), "--agent", "lm", "--budget", str(args.budget),
+                        "--forecast-draws", str(args.draws), "--workers",
+                        str(args.workers), "--seed", "0", "--campaign", name,
+                        "--storage", str(out / "store")], check=True)
+        found = figures(store, name)
         results[name] = found
         args.results.parent.mkdir(parents=True, exist_ok=True)
         tmp = args.results.with_suffix(".tmp")
