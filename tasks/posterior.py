@@ -28,7 +28,7 @@ from prefect.cache_policies import NO_CACHE
 from hmcore.calibration.calls import Job, PhysicsPrecheck
 from hmcore.calibration.posterior import laplace_draws
 from hmcore.model.case import Case
-from hmcore.reporting.identifiability import jacobian_journal, load_identifiability
+from hmcore.reporting.identifiability import call_label, jacobian_journal, load_identifiability
 from storage import ArtifactStore, ArtifactVersion, code_version, to_jsonable
 from tasks.simulate import Destination
 
@@ -74,8 +74,10 @@ def draw_posterior(case: Case, store_root: str, campaign: str, seed: int,
     store = ArtifactStore(store_root)
     found = load_identifiability(store, campaign)
     results = store.latest(campaign, "results")
+    stencil = found.stencil if found is not None else None
     inputs = {"results": results.ref() if results is not None else None, "count": count,
-              "seed": seed}
+              "seed": seed, "stencil": None if stencil is None else
+              {"base": stencil.base, "runs": list(stencil.runs)}}  # the posterior it stands on
     if found is None or found.result is None:
         reason = (found.reason if found is not None else "The campaign has no results.")
         version = store.put(campaign, POSTERIOR_STEP, inputs,
@@ -90,12 +92,11 @@ def draw_posterior(case: Case, store_root: str, campaign: str, seed: int,
     draws = laplace_draws(found.result, count, np.random.default_rng([seed, STREAM]), valid)
     jobs = tuple(Job(k, space.to_values(u), tuple(float(x) for x in u), 0, PHASE)
                  for k, u in enumerate(draws.points))
-    stencil = found.stencil
     doc = {"best_call": found.best_index + 1, "asked": count, "kept": len(jobs),
            "tried": draws.tried, "inflation": draws.inflation, "s2": found.result.laplace.s2,
            "free": [found.result.names[i] for i in draws.free],
            "stencil": {"base_call": stencil.base + 1,
-                       "runs": [j + 1 for j in stencil.runs]} if stencil else None,
+                       "runs": [call_label(j) for j in stencil.runs]} if stencil else None,
            "draws": [{"draw": k + 1, "action": list(j.action), "values": j.values}
                      for k, j in enumerate(jobs)],
            "reason": "" if jobs else "The box held none of the posterior's draws."}
