@@ -239,13 +239,21 @@ def punq_info():
 @needs_punq
 def test_extension_library_for_punq(punq_info, tmp_path):
     from hmcore.model.run_deck import prepare_run_deck
-    from hmcore.diagnosis.extensions import (KINDS, build_candidates, dated_productivity,
-                                             extended_space)
+    from hmcore.diagnosis.extensions import (
+        DEFAULT_KINDS,
+        KINDS,
+        build_candidates,
+        dated_productivity,
+        extended_space,
+    )
 
     space = ParameterSpace.reference()
     cands = build_candidates(punq_info, space, {"skin": 5.0})
     kinds = {c.kind for c in cands}
-    assert kinds == set(KINDS) - {"productivity_change"}  # dated by the ranking, below
+    assert kinds == set(DEFAULT_KINDS) - {"productivity_change"}  # dated by the ranking, below
+    asked = build_candidates(punq_info, space, {}, KINDS)  # every family, when asked for
+    assert {c.id for c in asked} - {c.id for c in cands} == {
+        "contact_depth:woc", "contact_depth:goc", "solution_gas:rsvd"}
     assert {c.id for c in build_candidates(punq_info, space, {}, ("productivity_change",))} \
         == {f"well_skin:{w}" for w in punq_info.producers}  # the probes its date scan reads
     day = punq_info.report_days[30]

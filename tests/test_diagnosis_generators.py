@@ -89,12 +89,11 @@ def test_generated_effects_lie_beyond_the_library(synthetic, seed):
     assert scaled.parameter.keywords == ({"water": "SWOF", "gas": "SGOF"}[phase],)
 
     (contact,) = generate("contact", seed, info, space, truth)
-    assert contact.kind == "contact_depth" and contact.parameter.keywords == ("EQUIL",)
-    assert contact.parameter.item == 3 and 0.003 <= abs(contact.value - 1.0) <= 0.008
-    assert contact.candidate.details["expect_ids"] == ["contact_depth:woc"]
+    assert contact.kind == "unexplained" and contact.parameter.keywords == ("EQUIL",)
+    assert 0.003 <= abs(contact.value - 1.0) <= 0.008
 
     (pvt,) = generate("pvt", seed, info, space, truth)
-    assert pvt.kind == "solution_gas" and pvt.parameter.keywords == ("RSVD",)
+    assert pvt.kind == "unexplained" and pvt.parameter.keywords == ("RSVD",)
     assert pvt.parameter.kind == "table_multiply" and 0.85 <= pvt.value <= 0.93
 
     two = generate("two_kinds", seed, info, space, truth)
@@ -200,11 +199,9 @@ def test_the_judge_asks_each_effect_its_family_and_wells(synthetic):
     assert others and not any(judge_effects(_doc([plane(o)]), [fault])["found"]
                               for o in others)  # a plane that parts other wells
     (contact,) = generate("contact", 1, info, space, truth)
-    woc = {"id": "contact_depth:woc", "kind": "contact_depth", "wells": [], "layers": [],
-           "chi2": 45.0}
-    goc = {**woc, "id": "contact_depth:goc"}
-    assert judge_effects(_doc([woc]), [contact])["found"]
-    assert not judge_effects(_doc([goc]), [contact])["found"]  # the other contact
+    unexplained = {"id": "unexplained", "kind": "unexplained", "wells": ["PROD1"], "layers": [],
+                   "chi2": None}
+    assert judge_effects(_doc([], first=unexplained), [contact])["found"]
     assert not judge_effects(_doc([right]), [contact])["found"]  # a confident wrong name
     a, b = generate("two_kinds", 2, info, space, truth)
 
@@ -320,3 +317,34 @@ def test_sweep_generated_effects_synthetic(tmp_path, generator, seed):
     row = _bench().one("synthetic", generator, seed, tmp_path, 2)
     if row.get("visible", True):
         assert row["found"], row
+
+
+@pytest.mark.opm
+def test_the_contact_and_solution_gas_families_move_the_deck_s_equil_and_rsvd(small_case,
+                                                                              tmp_path):
+    """The two families searched when asked for (``kinds``; not by default): their candidates
+    on the synthetic deck, and the deck a run of them writes."""
+    from hmcore.cases import load_case
+    from hmcore.diagnosis.extensions import DEFAULT_KINDS, build_candidates, extended_space
+    from hmcore.eclipse.lexer import records, split_blocks
+    from hmcore.model.run_deck import prepare_run_deck
+
+    case = load_case(str(small_case))
+    cands = build_candidates(case.info, case.space, {}, ("contact_depth", "solution_gas"))
+    assert [c.id for c in cands] == ["contact_depth:woc", "contact_depth:goc",
+                                     "solution_gas:rsvd"]
+    assert not {"contact_depth", "solution_gas"} & set(DEFAULT_KINDS)
+    space = extended_space(case.space, cands)
+    values = {**{p.name: 1.0 for p in case.space.parameters}, "skin": 0.0,
+              "woc_depth": 1.01, "goc_depth": 1.0, "rs_initial": 0.9}
+
+    def blocks(deck):
+        text = deck.read_text()
+        return {b.keyword: records(b.body) for b in split_blocks(text, {"EQUIL", "RSVD"})}
+
+    base = blocks(case.deck)
+    moved = blocks(prepare_run_deck(case.deck, values, space, tmp_path / "run"))
+    assert float(moved["EQUIL"][0][2]) == pytest.approx(1.01 * float(base["EQUIL"][0][2]))
+    assert float(moved["EQUIL"][0][4]) == pytest.approx(float(base["EQUIL"][0][4]))
+    rs = [float(x) for x in moved["RSVD"][0]][1::2]
+    assert rs == pytest.approx([0.9 * float(x) for x in base["RSVD"][0][1::2]])

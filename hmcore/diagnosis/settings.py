@@ -12,7 +12,7 @@ import difflib
 from dataclasses import dataclass, field
 from typing import Iterable
 
-from hmcore.diagnosis.extensions import KINDS
+from hmcore.diagnosis.extensions import DEFAULT_KINDS, KINDS
 from hmcore.diagnosis.recalibrate import LMSettings
 from hmcore.errors import Problem
 
@@ -28,8 +28,9 @@ class DiagnosisSettings:
     measured, on what, and what was tried instead: docs/diagnosis.md, "Where the settings'
     values come from"."""
 
-    kinds: tuple[str, ...] = KINDS
-    """Families of candidate extensions searched (see :data:`hmcore.diagnosis.KINDS`)."""
+    kinds: tuple[str, ...] = DEFAULT_KINDS
+    """Families of candidate extensions searched (default :data:`DEFAULT_KINDS`; every one of
+    :data:`hmcore.diagnosis.KINDS` can be asked for)."""
     confirm_top: int = 4
     """Candidates recalibrated at least (count), the best score tests first."""
     confirm_max: int = 6

@@ -26,6 +26,8 @@ STRENGTH = {
     "aquifer_strength": ((0.03, 0.12), (5.0, 15.0), 0.5),
     "fault_transmissibility": ((1e-3, 1e-2), (1e-3, 1e-2), 1.0),
     "relative_permeability": ((0.4, 0.55), (2.2, 2.9), 0.5),
+    "contact_depth": ((0.992, 0.997), (1.003, 1.008), 0.5),
+    "solution_gas": ((0.85, 0.93), (0.85, 0.93), 1.0),
 }
 """Realistic ranges of hidden effects, log-uniform for multipliers. Vertical permeability is
 drawn as a baffle (kv cut 100-1000 times): raising kv changes nothing once it is not the

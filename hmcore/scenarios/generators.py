@@ -24,13 +24,13 @@ generator            the truth hides                                        a ri
                      multiplied (x0.3-0.5 or x2-3, capped at 1), not        permeability family,
                      reshaped                                               that phase
 ``two_kinds``        two library effects of different kinds at once        both, each by kind
-``contact``          the initial water-oil contact moved (EQUIL item 3,    the contact-depth
-                     +-0.3-0.8 % of its depth)                              family, the water-
-                                                                            oil contact
-``pvt``              the initial oil's dissolved gas (RSVD item 2)         the solution-gas
-                     lowered by 7-15 %: the oil starts undersaturated,     family
-                     its GOR lower until the pressure reaches the new
-                     bubble point
+``contact``          the initial water-oil contact moved (EQUIL item 3,    ``unexplained``
+                     +-0.3-0.8 % of its depth): no default family makes     (or none, when
+                     that (``contact_depth`` does, when asked for)          invisible)
+``pvt``              the initial oil's dissolved gas (RSVD item 2)         ``unexplained``
+                     lowered by 7-15 %: the oil starts undersaturated,     (a fluid property:
+                     its GOR lower until the pressure reaches the new      no default family
+                     bubble point (``solution_gas`` when asked for)        acts on PVT)
 ``dated_productivity`` one producer's productivity index multiplied from a  the productivity-
                      report date in 20-50 % of the schedule on (WPIMULT    change family, that
                      x0.15-0.35 or x3-6: damage or a stimulation)           well, its start
@@ -56,7 +56,6 @@ nothing here simulates; :func:`hmcore.scenarios.hidden.write_hidden_synthetic_ca
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
@@ -269,31 +268,26 @@ def _rows_below_critical(info: DeckInfo, table: str) -> bool:
 
 
 def _contact(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
-    """The water-oil contact deeper or shallower by 0.3-0.8 % of its depth: the
-    contact-depth family's water-oil candidate."""
     factor = 1.0 + float(rng.uniform(0.003, 0.008)) * (1 if rng.random() < 0.5 else -1)
-    return _of_family(info, space, "contact", "contact_depth", "contact_depth:woc"), factor
+    p = Parameter(name="hidden_woc_depth", kind="item_multiply", keywords=("EQUIL",), item=3,
+                  low=0.95, high=1.05, description="water-oil contact depth (EQUIL item 3)")
+    return _of_no_family(info, "contact", p, f"contact:woc:x{factor:.4f}",
+                         f"the initial water-oil contact is "
+                         f"{'deeper' if factor > 1 else 'shallower'} than the model says "
+                         f"(depth x{factor:.4f})"), factor
 
 
 def _pvt(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
     """Less gas dissolved in the initial oil than the model says (RSVD x0.85-0.93): the
-    produced GOR starts lower, and free gas appears later, on every producer; the
-    solution-gas family's candidate."""
+    produced GOR starts lower, and free gas appears later, on every producer. Unlike a moved
+    contact, no candidate can mimic it: the library changes rock, wells, faults, aquifers and
+    the saturation curves, never what the oil holds in solution."""
     factor = float(rng.uniform(0.85, 0.93))
-    return _of_family(info, space, "pvt", "solution_gas", "solution_gas:rsvd"), factor
-
-
-def _of_family(info: DeckInfo, space: ParameterSpace, generated: str, kind: str,
-               cid: str) -> Candidate:
-    """The library candidate ``cid`` of family ``kind`` as the hidden effect of generator
-    ``generated``: a right answer names that candidate. ValueError when the deck has none."""
-    found = [c for c in build_candidates(info, space, {}, (kind,)) if c.id == cid]
-    if not found:
-        raise ValueError(f"the deck {info.path} offers no {cid} candidate, which the "
-                         f"{generated} generator moves")
-    c = found[0]
-    return replace(c, details={**c.details, "generated": generated, "expect_wells": [],
-                               "expect_ids": [cid]})
+    p = Parameter(name="hidden_rs_initial", kind="table_multiply", keywords=("RSVD",), item=2,
+                  low=0.5, high=1.5, description="initial solution gas-oil ratio (RSVD item 2)")
+    return _of_no_family(info, "pvt", p, f"pvt:rsvd:x{factor:.4f}",
+                         f"the initial oil holds less dissolved gas than the model says (RSVD "
+                         f"x{factor:.4f}): a fluid property"), factor
 
 
 def _of_no_family(info: DeckInfo, generated: str, p: Parameter, cid: str,
