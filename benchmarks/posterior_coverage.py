@@ -33,32 +33,19 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 
-from hmcore.eclipse.deck_info import DeckInfo  # noqa: E402
-from hmcore.model.case import PhysicsSettings  # noqa: E402
-from hmcore.model.parameters import ParameterSpace  # noqa: E402
+from make_bench_cases import draw_valid_truth  # noqa: E402
+
 from hmcore.scenarios.synthetic import write_synthetic_case  # noqa: E402
-from hmcore.scoring.physics import check_physics  # noqa: E402
 from storage import ArtifactStore  # noqa: E402
 
 RESULTS = REPO / "benchmarks/results/posterior-coverage/results.json"
 QUANTITIES = ("FOPT", "FWPT", "FGPT")
-
-
-def draw_truth(seed: int, deck: Path) -> dict[str, float]:
-    """The five globals drawn uniformly in the box until no physics check fires."""
-    space, info = ParameterSpace.reference(), DeckInfo.inspect(deck)
-    rng = np.random.default_rng([seed, 23])
-    for _ in range(1000):
-        values = space.to_values(rng.uniform(-1.0, 1.0, space.dim))
-        if check_physics(values, space, info, PhysicsSettings()).valid:
-            return {k: round(v, 4) for k, v in values.items()}
-    raise RuntimeError(f"no physically valid truth in 1000 draws for seed {seed}")
 
 
 def make_case(out: Path, seed: int) -> Path:
@@ -70,7 +57,7 @@ def make_case(out: Path, seed: int) -> Path:
         return case
     probe = out / f".probe-{seed}"
     write_synthetic_case(probe, seed)  # the seed's deck, to draw a truth its checks pass
-    truth = draw_truth(seed, probe / "SYNTH.DATA")
+    truth = draw_valid_truth(seed, probe / "SYNTH.DATA", stream=23)
     case = write_synthetic_case(folder, seed, truth=truth)
     shutil.rmtree(probe)
     return case
