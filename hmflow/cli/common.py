@@ -90,10 +90,11 @@ RUNNER_HELP = ("Where the simulator calls run: threads (subprocesses of this pro
                "(a Dask cluster: --dask-address, DASK_ADDRESS, else a local one of --workers "
                "processes); see docs/cluster.md")
 DASK_HELP = "Dask scheduler address, e.g. tcp://head-node:8786 (default: DASK_ADDRESS)"
-KINDS_HELP = ("Families of candidate extensions to search, comma-separated (default all): "
+KINDS_HELP = ("Families of candidate extensions to search, comma-separated (default all but "
+              "the last two): "
               "well_skin, regional_permeability, layer_permeability, vertical_permeability, "
               "aquifer_strength, fault_transmissibility, relative_permeability, "
-              "productivity_change")
+              "productivity_change, contact_depth, solution_gas")
 """Spelled out so that ``--help`` does not import the diagnosis; a test holds it to
 :data:`hmcore.diagnosis.extensions.KINDS`, as ``GENERATORS_HELP`` to the generators."""
 GENERATORS_HELP = ("partial_fault, offcentre_region, relperm_endpoint, relperm_scaling, "
