@@ -48,7 +48,7 @@ def consolidate(store_root: str, campaign: str, parameter_names: list[str],
     name = objective.name if objective is not None else "E"
     if objective is not None and objective.observations is not None:
         rows = [{**r, "likelihood": objective.likelihood(r)} for r in rows]
-    scored_refs = {label: {"E": rec.get("E"), "likelihood": (
+    scored_refs = {label: {"E": rec.get("E"), "E_heldout": rec.get("E_heldout"), "likelihood": (
         objective.likelihood(rec) if objective is not None and objective.observations
         is not None else None)} for label, rec in (
         ("floor", (references or {}).get(FLOOR)), ("centre", (references or {}).get(CENTRE)))
@@ -134,7 +134,8 @@ def report(store_root: str, campaign: str, publish_prefect_artifacts: bool = Tru
     noise = (noise_from.read_parquet("noise.parquet") if "noise.parquet" in noise_from.files
              else None)
     scores = results.read_json("records.json") if results is not None else {}
-    choice = Choice(scores.get("objective", "E"), scores.get("noise"), scores.get("references"))
+    choice = Choice(scores.get("objective", "E"), scores.get("noise"),
+                    _with_heldout(store, campaign, scores.get("references")))
     plots = {name: diagnosis.file(name).read_bytes()
              for name in (diagnosis_doc or {}).get("plots", []) if name in diagnosis.files}
     identifiability = load_identifiability(store, campaign) if results is not None else None
@@ -170,6 +171,20 @@ def _diagnosis_markdown(diagnosis_doc: dict | None) -> str | None:
         return None
 
     return markdown_report(diagnosis_doc, level=2)
+
+
+def _with_heldout(store: ArtifactStore, campaign: str, references: dict | None) -> dict | None:
+    """The scored reference runs with each one's held-back E from its record (results
+    consolidated before they kept it have none)."""
+    if not references:
+        return references
+    reference = campaign_reference(store, campaign)
+    if not store.has_campaign(reference):
+        return references
+    rows = {r["index"]: r for r in EvaluationJournal(store, reference).rows()}
+    index = {"floor": FLOOR, "centre": CENTRE}
+    return {k: {**v, "E_heldout": v.get("E_heldout", (rows.get(index.get(k)) or {}).get(
+        "E_heldout"))} for k, v in references.items()}
 
 
 def report_inputs(store: ArtifactStore, campaign: str, case_doc: dict, table, best_doc,

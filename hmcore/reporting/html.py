@@ -132,7 +132,8 @@ def _sections(inputs: ReportInputs, calls: Calls) -> dict[str, str]:
             parts["information"] = information_markdown(best["metrics"], info, "fit",
                                                         well_names(best["metrics"]))
     if has_heldout(best):
-        parts["heldout"] = heldout_markdown(best, inputs.case_doc, info)
+        parts["heldout"] = heldout_markdown(best, inputs.case_doc, info,
+                                            (inputs.choice or Choice()).references)
     if len(inputs.table) and "best_E_so_far" in inputs.table:
         parts["convergence"] = convergence_markdown(inputs.table, inputs.choice or Choice())
     if best is not None and inputs.identifiability is not None:

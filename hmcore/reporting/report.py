@@ -211,7 +211,7 @@ def _campaign_report(campaign: str, case_doc: dict, table: pd.DataFrame, best: d
     doc["ratio_table"] = to_jsonable(ratio_table(best["metrics"]).to_dict(orient="records"))
     doc["information"] = to_jsonable(info.to_dict(orient="records"))
     if has_heldout(best):
-        lines += heldout_markdown(best, case_doc, info)
+        lines += heldout_markdown(best, case_doc, info, (choice or Choice()).references)
         doc["heldout_category_table"] = to_jsonable(
             category_table(best["heldout_metrics"]).to_dict(orient="records"))
         doc["heldout_macro_informative"] = informative_macro(best["heldout_metrics"], info,
@@ -245,13 +245,19 @@ def has_heldout(best: dict | None) -> bool:
     return bool(best and (best.get("heldout_metrics") or {}).get("categories"))
 
 
-def heldout_markdown(best: dict, case_doc: dict, info: pd.DataFrame) -> list[str]:
-    """The held-back history's section: its E, which responses carry information there, the
-    macro over them and the paper's three tables."""
+def heldout_markdown(best: dict, case_doc: dict, info: pd.DataFrame,
+                     references: dict | None = None) -> list[str]:
+    """The held-back history's section: its E beside the reference runs' (``references``:
+    floor and centre, each with ``E_heldout``, when scored), which responses carry information
+    there, the macro over them and the paper's three tables."""
     metrics = best["heldout_metrics"]
     end = case_doc.get("fit_history_end_days", case_doc.get("history_end_days"))
+    beside = [f"{label} {_fmt(float(doc['E_heldout']), 6)}" for key, label in
+              (("floor", "truth / deck values"), ("centre", "prior centre"))
+              if (doc := (references or {}).get(key)) and doc.get("E_heldout") is not None]
     lines = ["## Held-back history", "",
-             f"Held-back history (after day {end}): E = {_fmt(best.get('E_heldout'), 6)}. "
+             f"Held-back history (after day {end}): E = {_fmt(best.get('E_heldout'), 6)}"
+             + (f" ({'; '.join(beside)})" if beside else "") + ". "
              "These data were measured but not fitted: how the best case does on them is the "
              "test of its prediction.", ""]
     lines += information_markdown(metrics, info, "heldout", well_names(metrics), level=3)
