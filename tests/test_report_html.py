@@ -314,7 +314,8 @@ def test_a_first_reading_finds_the_best_case_held_back_information_and_calls(cam
                                                                               small_case):
     """The facts a new reader needs, read from the built page and checked against the stored
     records and the case's own files (its noise-free truth, its history's sigma)."""
-    from storage import ArtifactStore
+    from storage import ArtifactStore, EvaluationJournal
+    from tasks.reference import CENTRE, FLOOR
 
     store = ArtifactStore(campaign)
     rep = store.latest(CAMPAIGN, "report")
@@ -329,8 +330,12 @@ def test_a_first_reading_finds_the_best_case_held_back_information_and_calls(cam
     assert float(m[1]) == pytest.approx(best["E"], rel=1e-5)
     assert (int(m[2]), int(m[3])) == (best["index"] + 1, len(table))
     # the held-back history: its E and its tables
-    m = re.search(rf"Held-back history \(after day ({NUMBER})\): E = ({NUMBER})", page.text)
+    m = re.search(rf"Held-back history \(after day ({NUMBER})\): E = ({NUMBER}) \(truth / "
+                  rf"deck values ({NUMBER}); prior centre ({NUMBER})\)", page.text)
     assert float(m[1]) == end and float(m[2]) == pytest.approx(best["E_heldout"], rel=1e-5)
+    refs = {r["index"]: r for r in EvaluationJournal(store, f"{CAMPAIGN}-reference").rows()}
+    assert [float(m[3]), float(m[4])] == pytest.approx(  # its yardsticks: the reference runs'
+        [refs[FLOOR]["E_heldout"], refs[CENTRE]["E_heldout"]], abs=5e-7)  # (6 decimals)
     held = {r["category"]: r for r in page.table("Held-back history: categories")}
     for cat, score in best["heldout_metrics"]["categories"].items():
         if score["n"]:
