@@ -8,7 +8,8 @@ posterior draw's run), ``call`` (from 1; 0 for the reference runs and the draws)
 caveat to print, member calls or draws, the posterior's figures, whether the floor run is
 the truth). The forecast's members: an ES-MDA campaign's posterior ensemble; else the valid
 runs of the posterior draws (:mod:`tasks.posterior`) when there are at least 2; else the best
-calls by the campaign's objective. The report is drawn from it, so it survives the deletion of the run dirs.
+calls by the campaign's objective. The report is drawn from it, so it survives the deletion
+of the run dirs.
 """
 
 from __future__ import annotations

@@ -47,8 +47,8 @@ the box)."""
 class Draws:
     """``points`` (m, d) scaled points in the box, from the posterior centred on ``centre``
     (d,); ``inflation``: the factor ``C`` was multiplied by (``max(1, s2)``); ``tried``: the
-    draws made to keep these (the rest fell outside the box or broke ``accept``); ``free``: the parameters the
-    data do not determine (drawn across the box)."""
+    draws made to keep these (the rest fell outside the box or broke ``accept``); ``free``:
+    the parameters the data do not determine (drawn across the box)."""
 
     points: np.ndarray
     centre: np.ndarray
