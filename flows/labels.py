@@ -1,5 +1,5 @@
 """How hmflow's flow runs read in the Prefect UI: names from the campaign, tags (case, agent,
-seed) and a progress artifact with the best E (task-run names: :mod:`tasks.naming`)."""
+seed) and a progress artifact with the lowest E so far (task-run names: :mod:`tasks.naming`)."""
 
 from __future__ import annotations
 
@@ -52,8 +52,10 @@ def tag_flow_run(*tags: str) -> None:
 
 
 class Progress:
-    """A progress artifact of a campaign: calls done of the budget, and the best E so far in
-    its description, updated after every batch of simulator calls."""
+    """A progress artifact of a campaign: calls done of the budget, and the lowest E of a
+    valid call so far in its description (the campaign's objective, which chooses the best
+    call, is known only at the end: its noise is refined on the way), updated after every
+    batch of simulator calls."""
 
     def __init__(self, campaign: str, budget: int):
         from prefect.artifacts import create_progress_artifact
@@ -72,7 +74,8 @@ class Progress:
         for r in records:
             if r.get("status") == "COMPLETE" and r.get("E") is not None:
                 self.best = min(self.best, float(r["E"]))
-        best = f"best E so far {self.best:.5g}" if math.isfinite(self.best) else "no valid call yet"
+        best = (f"lowest E so far {self.best:.5g}" if math.isfinite(self.best)
+                else "no valid call yet")
         update_progress_artifact(self.id, min(100.0, 100.0 * self.done / self.budget),
                                  description=f"{self.campaign}: {self.done}/{self.budget} calls, "
                                              f"{best}")

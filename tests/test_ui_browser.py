@@ -85,7 +85,7 @@ def test_ui_shows_the_named_run_its_call_numbered_tasks_and_artifacts(finished_c
     artifacts = render_showing(f"{ui}/artifacts", [f"{CAMPAIGN}-{k}" for k in keys])
     for key in keys:
         assert f"{CAMPAIGN}-{key}" in artifacts, f"{CAMPAIGN}-{key} not on the artifacts page"
-    # the progress artifact's page: the calls done of the budget and the best E so far
+    # the progress artifact's page: the calls done of the budget and the lowest E so far
     progress = render_showing(f"{ui}/artifacts/key/{CAMPAIGN}-progress",
-                              [f"{BUDGET}/{BUDGET} calls", "best E so far"])
-    assert f"{BUDGET}/{BUDGET} calls" in progress and "best E so far" in progress
+                              [f"{BUDGET}/{BUDGET} calls", "lowest E so far"])
+    assert f"{BUDGET}/{BUDGET} calls" in progress and "lowest E so far" in progress
