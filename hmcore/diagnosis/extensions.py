@@ -61,8 +61,7 @@ KINDS = ("well_skin", "regional_permeability", "layer_permeability", "vertical_p
 DEFAULT_KINDS = KINDS[:8]
 """The families a diagnosis searches unless told (``kinds``): all but ``contact_depth`` and
 ``solution_gas``, which are searched when asked for until a sweep has measured what they do
-to the answers (added 2026-12-07; on the linear stand-in they out-weighed ``unexplained`` for
-an effect of no family, see docs/diagnosis.md)."""
+to the answers (why: docs/diagnosis.md, the extension kinds)."""
 
 REGION_HALF_WIDTH = 3
 """Half width (cells) of the box of a regional permeability candidate."""
