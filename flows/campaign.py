@@ -36,7 +36,7 @@ from tasks.noise import store_noise
 from tasks.posterior import draw_posterior, plan_jacobian
 from tasks.reference import reference_name, reference_settings, run_references
 from tasks.results import archive_best, consolidate, report
-from tasks.simulate import observation_set, simulate, simulate_parameters
+from tasks.simulate import CAMPAIGN, observation_set, simulate, simulate_parameters
 
 DEFAULT_STORAGE = "./hmflow-storage"
 
@@ -228,10 +228,14 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
         with make_runner(task_runner, workers, dask_address, loaded.cluster) as runner:
             references = run_references(loaded, storage, reference, runner, observations)
 
-            def evaluate_batch(jobs: list[Job]) -> list[dict]:
+            def run_jobs(jobs, destination=CAMPAIGN) -> list[dict]:
                 futures = [runner.submit(simulate, simulate_parameters(
-                    loaded, job, storage, campaign, seed, agent, observations)) for job in jobs]
-                records = [f.result() for f in futures]
+                    loaded, job, storage, campaign, seed, agent, observations,
+                    destination=destination)) for job in jobs]
+                return [f.result() for f in futures]
+
+            def evaluate_batch(jobs: list[Job]) -> list[dict]:
+                records = run_jobs(jobs)
                 progress.update(records)
                 return records
 
@@ -247,20 +251,12 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
                     logger.info(f"campaign {campaign}: {len(jacobian.jobs)} finite-difference "
                                 f"runs at call {jacobian.best_index + 1} for its posterior, "
                                 "apart from the budget")
-                futures = [runner.submit(simulate, simulate_parameters(
-                    loaded, job, storage, campaign, seed, agent, observations,
-                    destination=jacobian.destination)) for job in jacobian.jobs]
-                for future in futures:
-                    future.result()
+                run_jobs(jacobian.jobs, jacobian.destination)
                 plan = draw_posterior(loaded, storage, campaign, seed, draws)
                 logger.info(f"campaign {campaign}: forecast from {len(plan.jobs)} posterior "
                             "draws, simulated apart from the budget" if plan.jobs else
                             f"campaign {campaign}: no posterior draws: {plan.reason}")
-                futures = [runner.submit(simulate, simulate_parameters(
-                    loaded, job, storage, campaign, seed, agent, observations,
-                    destination=plan.destination)) for job in plan.jobs]
-                for future in futures:
-                    future.result()
+                run_jobs(plan.jobs, plan.destination)
         collect_curves(storage, campaign, reference)
         rep = report(storage, campaign)
         summary = rep.read_json("report.json")
