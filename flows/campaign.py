@@ -1,4 +1,5 @@
-"""The campaign flow: prepare case -> reference runs (truth or deck values, prior centre) ->
+"""The campaign flow: prepare case (and, for a ``[latent]`` case, the fields' prior modes,
+:mod:`tasks.latent`) -> reference runs (truth or deck values, prior centre) ->
 the method in the loop (simulate tasks on a task runner) -> consolidate into Parquet ->
 archive the best valid case -> curves and forecast -> report (Markdown, JSON, HTML)."""
 
@@ -32,6 +33,7 @@ from storage import ArtifactStore, EvaluationJournal, validate_name
 from storage.lock import NameHeldError, NameKind, NameLock
 from tasks.case import prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
+from tasks.latent import BASIS_DOC, latent_settings, prepare_latent
 from tasks.noise import store_noise
 from tasks.posterior import draw_posterior, plan_jacobian
 from tasks.reference import reference_name, reference_settings, run_references
@@ -179,7 +181,7 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
             raise ValueError("; ".join(problems))
         storage = str(Path(storage).expanduser().resolve())
         loaded = load_case(case)
-        problems = scalar_problems(loaded)
+        problems = scalar_problems(loaded, latent=True)
         if problems:
             raise ValueError("; ".join(problems))
         origin = fork_origin(storage, forked_from) if forked_from else None
@@ -194,9 +196,16 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
     except NameHeldError as exc:
         return refused(exc)
     try:
+        latent = prepare_latent(loaded, storage, campaign) if loaded.latent else None
+        if latent is not None:  # the fields' modes join the space, first
+            loaded = latent.case
+            logger.info(f"campaign {campaign}: the fields moved by {len(latent.names)} modes "
+                        f"of their prior ({latent.version.read_json(BASIS_DOC)['share']:.1%} "
+                        "of its variance)")
+        simulator_of = latent.job_simulator if latent is not None else (lambda job: None)
         case_version = prepare_deck(loaded, case, storage, campaign)
         try:  # a name bound to other settings (another case, method or version): one clear line
-            check_campaign_settings(storage, campaign, {
+            check_campaign_settings(storage, campaign, {**latent_settings(loaded),
                 "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
                 "agent_settings": agent_settings or {}, "workers": workers,
                 "scoring_version": SCORING_VERSION, "method_version": method_version(agent),
@@ -226,12 +235,15 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
         progress.update([r for i, r in done.items() if i < budget])
 
         with make_runner(task_runner, workers, dask_address, loaded.cluster) as runner:
-            references = run_references(loaded, storage, reference, runner, observations)
+            references = run_references(
+                loaded, storage, reference, runner, observations,
+                dict(zip(latent.names, latent.deck)) if latent is not None else None,
+                simulator_of)
 
             def run_jobs(jobs, destination=CAMPAIGN) -> list[dict]:
                 futures = [runner.submit(simulate, simulate_parameters(
                     loaded, job, storage, campaign, seed, agent, observations,
-                    destination=destination)) for job in jobs]
+                    destination=destination, simulator=simulator_of(job))) for job in jobs]
                 return [f.result() for f in futures]
 
             def evaluate_batch(jobs: list[Job]) -> list[dict]:

@@ -49,18 +49,26 @@ def input_problems(agent: str | None = None, budget: int | None = None,
     return problems
 
 
-def scalar_problems(loaded: Case) -> list[str]:
+def scalar_problems(loaded: Case, latent: bool = False) -> list[str]:
     """A calibration (a campaign's method, a benchmark's, a diagnosis's) moves the case's
     scalar parameters: a case of field parameters only has none, and is refused in one line
     before anything runs; [] for any other case (its fields, if any, are left at the deck's
-    values: they are the ensemble smoother's, docs/ensembles.md)."""
-    if loaded.space.parameters or not loaded.fields:
+    values: they are the ensemble smoother's, docs/ensembles.md). A campaign (``latent``)
+    also moves a ``[latent]`` case's fields by their prior's modes; a benchmark and a
+    diagnosis do not, and refuse such a case."""
+    if loaded.latent is not None and not latent:
+        return [(f"case {loaded.name} ({loaded.source}) has a [latent] section: its fields are "
+                 "moved by their prior's modes in a campaign (hmflow run), not in a benchmark "
+                 "or a diagnosis (fix: run it with hmflow run --agent M for each method, or "
+                 "remove [latent] to move the scalar parameters only)")]
+    if loaded.space.parameters or not loaded.fields or loaded.latent is not None:
         return []
     names = ", ".join(f.name for f in loaded.fields)
     return [(f"case {loaded.name} ({loaded.source}) has field parameters only ({names}) and "
              "no scalar parameter for a calibration method to move (fix: add a scalar "
-             "[[parameters]] table, e.g. kind = \"multiply\"; the fields are matched by the "
-             "ensemble smoother, docs/ensembles.md)")]
+             "[[parameters]] table, e.g. kind = \"multiply\", or a [latent] section, which moves "
+             "the fields by their prior's leading modes; or match the fields with the "
+             "ensemble smoother, hmflow ensemble: docs/ensembles.md)")]
 
 
 def ensemble_problems(loaded: Case) -> list[str]:

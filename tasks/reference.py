@@ -6,6 +6,8 @@ benchmark's, so they run once per case and benchmark."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
+
 import numpy as np
 
 from hmcore.calibration.calls import Job
@@ -24,9 +26,11 @@ def reference_name(campaign: str) -> str:
     return f"{campaign}-reference"
 
 
-def reference_jobs(case: Case) -> list[Job]:
-    """Call 0: the truth's values (known truth) or the deck's own; call 1: the box's centre."""
-    truth = benchmark.case_truth(case.source) or base_values(case.info, case.space)
+def reference_jobs(case: Case, floor: Mapping[str, float] | None = None) -> list[Job]:
+    """Call 0: the truth's values (known truth) or the deck's own, ``floor`` overriding them
+    (the latent coefficients of the deck's fields); call 1: the box's centre."""
+    truth = {**base_values(case.info, case.space), **(benchmark.case_truth(case.source) or {}),
+             **(floor or {})}
     truth = {n: float(truth[n]) for n in case.space.names}
     centre = np.zeros(case.space.dim)
     return [Job(FLOOR, truth, tuple(float(x) for x in case.space.to_action(truth)), 0, "floor"),
@@ -41,17 +45,20 @@ def reference_settings(case_version: ArtifactVersion) -> dict:
 
 
 def run_references(case: Case, storage: str, reference: str, runner,
-                   observations=None) -> dict[int, dict]:
+                   observations=None, floor: Mapping[str, float] | None = None,
+                   simulator_of: Callable[[Job], object] | None = None) -> dict[int, dict]:
     """Simulate, on the started task ``runner``, the reference calls not yet journaled under
     ``reference`` (a campaign of its own, bound by the flow to :func:`reference_settings`)
     and return both records by index. With ``observations`` a record keeps the simulated
     value of every row, so that the campaign's objective scores it (a reference journaled
-    before records kept them has no likelihood)."""
+    before records kept them has no likelihood). ``floor`` and ``simulator_of`` (a job's
+    simulator) are a latent case's (:mod:`tasks.latent`)."""
     journal = EvaluationJournal(ArtifactStore(storage), reference)
     done = {r["index"] for r in journal.rows()}
-    futures = [runner.submit(simulate, simulate_parameters(case, job, storage, reference, 0,
-                                                           REFERENCE_AGENT, observations))
-               for job in reference_jobs(case) if job.index not in done]
+    futures = [runner.submit(simulate, simulate_parameters(
+        case, job, storage, reference, 0, REFERENCE_AGENT, observations,
+        simulator=simulator_of(job) if simulator_of else None))
+        for job in reference_jobs(case, floor) if job.index not in done]
     for f in futures:
         f.result()
     return {r["index"]: r for r in journal.rows()}

@@ -34,6 +34,13 @@ oil, water and gas: their sum of squares is the mean variant's E; injection rate
 counts when observed, and the robust variant's worst well are not in them), each with one more
 entry ``sqrt(P * ssr / E)`` for a penalty.
 
+The prior of latent coefficients (a case's ``[latent]`` with ``prior = "regularised"``, the
+default, under the likelihood): the coefficients ``z`` of the fields' modes are standard normal
+a priori (:mod:`hmcore.fields.latent`), and ``sum z^2`` joins chi2 before the division by
+``n`` (the likelihood is then -2 log-posterior per row), and ``z`` joins the least-squares
+residuals: the fit is the coefficients' maximum a posteriori, not the fields that fit the
+noise best. Under E there is no such term (E's scale is not the noise's): the bounds alone.
+
 Refining the noise (:meth:`Objective.refined`): under the likelihood, where any fitted row's
 sigma was estimated from the data (not given in the history's ``sigma`` column nor stated in
 ``[noise]``, which stay as they are), the noise is re-estimated from the residuals of a call
@@ -50,6 +57,8 @@ import numpy as np
 import pandas as pd
 
 from hmcore.calibration.methods.base import Feedback
+from hmcore.fields.latent import prior_residuals
+from hmcore.model.latent_case import latent_names
 from hmcore.scoring.misfit import PRIMARY, category_ranges
 from hmcore.scoring.observations import ObservationSet
 
@@ -86,8 +95,9 @@ class Objective:
     """The objective of a campaign (see the module docstring): ``name``, the observation set
     whose noise it assumes (``observations``; None: E from the records alone), the observed
     frame that set was made from and its context (to refine it), E's normalising ranges,
-    which call's residuals the noise was refined from (``refined_from``, None: from the data)
-    and how many refinements made it."""
+    which call's residuals the noise was refined from (``refined_from``, None: from the data),
+    how many refinements made it, and the latent coefficients whose standard normal prior
+    joins the likelihood (``prior``, see the module's docstring)."""
 
     name: str = "E"
     observations: ObservationSet | None = None
@@ -96,6 +106,7 @@ class Objective:
     ranges: dict[str, float] = field(default_factory=dict)
     refined_from: int | None = None
     refinement: int = 0
+    prior: tuple[str, ...] = ()
     _cache: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self):
@@ -108,8 +119,11 @@ class Objective:
     def of_case(cls, case, observations: ObservationSet | None = None) -> Objective:
         """The case's objective over ``observations`` (default: the case's own set)."""
         obs = observations if observations is not None else ObservationSet.from_case(case)
+        regularised = (case.misfit.objective == "likelihood" and case.latent is not None
+                       and case.latent.prior == "regularised")
         return cls(case.misfit.objective, obs, case.informative, case.observed,
-                   category_ranges(case.observed))
+                   category_ranges(case.observed),
+                   prior=latent_names(case) if regularised else ())
 
     @property
     def key(self) -> str:
@@ -146,7 +160,8 @@ class Objective:
         if sim is None or scored_E(record) is None:
             return float("nan")
         r = self.whitened(sim)
-        return float(r @ r) / max(self.observations.n_noise("fit"), 1)
+        z = prior_residuals(record.get("params") or {}, self.prior)
+        return (float(r @ r) + float(z @ z)) / max(self.observations.n_noise("fit"), 1)
 
     def value(self, record: dict) -> float:
         """The record's value under the objective (NaN for a failed or unscored run)."""
@@ -187,7 +202,9 @@ class Objective:
             return None
         sim = self.simulated(record)
         if sim is not None:
-            r = self.whitened(sim) if self.name == "likelihood" else self._e_residuals(sim)
+            r = (np.concatenate([self.whitened(sim),
+                                 prior_residuals(record.get("params") or {}, self.prior)])
+                 if self.name == "likelihood" else self._e_residuals(sim))
         elif record.get("residuals") is not None:  # a fake evaluator's or an older journal's
             r = np.nan_to_num(np.asarray(record["residuals"], float))
         else:
@@ -232,7 +249,7 @@ class Objective:
             raise ValueError(f"call {record.get('index')} cannot refine the noise")
         obs = self.observations.refine_simulated(sim, self.observed, self.context)
         return Objective(self.name, obs, self.observed, self.context, self.ranges,
-                         int(record["index"]), self.refinement + 1)
+                         int(record["index"]), self.refinement + 1, self.prior)
 
     def describe(self) -> dict:
         """The noise's provenance, for its stored artifact."""

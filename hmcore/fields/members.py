@@ -7,7 +7,8 @@ field's or scalar's name) and ``cell`` (the active cell's index in the field, -1
 scalar). A member's run then reads its own column only (Parquet is columnar), whatever the
 grid's size. A member left out of an update is a column of NaN.
 
-The run: :class:`MemberSimulator` wraps the case's simulator. Given the per-run deck hmflow
+The run: :class:`MemberSimulator` (and :class:`LatentSimulator`, whose fields are the latent
+basis's at a call's coefficients) wraps the case's simulator. Given the per-run deck hmflow
 has written (the scalar parameters applied, INCLUDE paths absolute:
 :mod:`hmcore.model.run_deck`), it writes the member's fields as a GRDECL file in the run
 directory (:func:`hmcore.fields.grdecl.write_member`: physical values, truncated to the
@@ -20,7 +21,7 @@ the wrapped simulator runs the deck. Nothing here starts a process itself.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,7 @@ from hmcore.eclipse.lexer import split_blocks
 from hmcore.errors import CaseError, Problem
 from hmcore.fields.grdecl import write_member
 from hmcore.fields.grid import FieldGrid
+from hmcore.fields.latent import LatentBasis
 from hmcore.fields.layout import Layout
 from hmcore.fields.spec import FieldSpec
 
@@ -137,14 +139,60 @@ class MemberSimulator:
         return {name: values[0] for name, values in fields.items()}
 
     def run(self, deck: Path, run_dir: Path):
-        run_dir = Path(run_dir).resolve()
-        run_dir.mkdir(parents=True, exist_ok=True)
-        include = write_member(run_dir / INCLUDE_NAME, self.fields, self.values(), self.grid,
-                               header=f"member {self.member} of {self.ensemble}")
-        deck = Path(deck)
-        deck.write_text(insert_grid_include(deck.read_text(errors="replace"), include,
-                                            self.keywords))
-        return self.inner.run(deck, run_dir)
+        return run_with_fields(self.inner, deck, run_dir, self.fields, self.values(), self.grid,
+                               self.keywords, f"member {self.member} of {self.ensemble}")
+
+
+@dataclass(frozen=True)
+class LatentSimulator:
+    """The case's simulator (``inner``) running the fields that the coefficients ``z`` of the
+    latent basis stored at ``basis`` make (:class:`hmcore.fields.latent.LatentBasis`, in
+    ``layout``'s field columns), included at the end of GRID as a member's are. One per call:
+    :meth:`bound` gives it the call's values. Holds paths and numbers, not the basis."""
+
+    inner: Any
+    basis: Path
+    fields: tuple[FieldSpec, ...]
+    grid: FieldGrid
+    layout: Layout
+    keywords: frozenset[str]
+    z: tuple[float, ...] = ()
+
+    @property
+    def name(self) -> str:
+        return getattr(self.inner, "name", "simulator")
+
+    def bound(self, z) -> LatentSimulator:
+        """This simulator for coefficients ``z`` (``(k,)``, the basis's mode order)."""
+        return replace(self, z=tuple(float(v) for v in z))
+
+    def values(self) -> dict[str, np.ndarray]:
+        """{field name: update-space values ``(n_active,)``} of ``z``."""
+        table = pq.read_table(self.basis).to_pandas()
+        _check_rows(table["parameter"].astype(str).to_numpy(), table["cell"].to_numpy(),
+                    self.layout)
+        doc = LatentBasis.from_table(table, float("nan"), 0)
+        row = doc.fields(np.asarray(self.z, float)).astype(np.float32)
+        fields, _ = self.layout.split(row[None, :])
+        return {name: values[0] for name, values in fields.items()}
+
+    def run(self, deck: Path, run_dir: Path):
+        return run_with_fields(self.inner, deck, run_dir, self.fields, self.values(), self.grid,
+                               self.keywords, f"latent coefficients of {self.basis}: "
+                               + " ".join(f"{v:.6g}" for v in self.z))
+
+
+def run_with_fields(inner, deck: Path, run_dir: Path, fields: tuple[FieldSpec, ...],
+                    values: dict[str, np.ndarray], grid: FieldGrid, keywords: frozenset[str],
+                    header: str):
+    """Write ``values`` (update space, per field) to :data:`INCLUDE_NAME` in ``run_dir``,
+    include it at the end of the deck's GRID section and run the deck with ``inner``."""
+    run_dir = Path(run_dir).resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    include = write_member(run_dir / INCLUDE_NAME, fields, values, grid, header=header)
+    deck = Path(deck)
+    deck.write_text(insert_grid_include(deck.read_text(errors="replace"), include, keywords))
+    return inner.run(deck, run_dir)
 
 
 def scalar_prior(size: int, names: Sequence[str], seed: int) -> np.ndarray:

@@ -71,6 +71,7 @@ from hmcore.eclipse.deck_info import DeckInfo, ParsedDeck
 from hmcore.eclipse.history import controlled_mask
 from hmcore.errors import CaseError, Problem
 from hmcore.fields.ensemble import EnsembleSpec
+from hmcore.fields.latent import LatentSpec
 from hmcore.fields.spec import FieldSpec
 from hmcore.model import case_fields
 from hmcore.model.cluster import ClusterSettings
@@ -85,6 +86,7 @@ from hmcore.model.observed import inspect_observed
 from hmcore.model.parameters import Parameter, ParameterSpace, reference_parameters
 from hmcore.model.validation import (
     OPM_BACKENDS,
+    deck_reference_problems,
     did_you_mean,
     parameter_problems,
     simulator_problems,
@@ -165,6 +167,7 @@ class CaseFile(BaseModel):
     physics: PhysicsSettings = PhysicsSettings()
     parameters: tuple[case_fields.ParameterEntry, ...] | None = None
     ensemble: EnsembleSpec = EnsembleSpec()
+    latent: LatentSpec | None = None
     noise: dict[str, QuantityNoise] = {}
     cluster: ClusterSettings = ClusterSettings()
 
@@ -193,6 +196,9 @@ class Case:
     ensemble: EnsembleSpec = field(default_factory=EnsembleSpec)
     """The ``[ensemble]`` section (its defaults when the file has none)."""
     cluster: ClusterSettings = field(default_factory=ClusterSettings)  # ``[cluster]``
+    latent: LatentSpec | None = None
+    """The ``[latent]`` section: a calibration moves the fields by their prior's modes
+    (:mod:`hmcore.fields.latent`); None: the fields keep the deck's values there."""
 
     @property
     def informative(self) -> pd.DataFrame:
@@ -236,7 +242,7 @@ class Case:
 
     def with_space(self, space: ParameterSpace) -> "Case":
         """The same case with another parameter space (checked against the deck)."""
-        problems = _check_parameters(space.parameters, self.info, str(self.source))
+        problems = deck_reference_problems(space.parameters, self.info, str(self.source))
         if problems:
             raise CaseError(problems)
         return Case(**{**self.__dict__, "space": space})
@@ -373,12 +379,17 @@ def load_case_file(case: str | Path) -> Case:
             "processes = 1 and use threads"))
     if info is not None:
         where = f"{path} [[parameters]]"
-        deck_problems = _check_parameters(params, info, where)
+        deck_problems = deck_reference_problems(params, info, where)
         problems.extend(deck_problems)
 
         clean = [p for p in params if not any(x.where == f"{where} '{p.name}'"
                                               for x in deck_problems)]
         problems.extend(parameter_problems(clean, info, where))
+    if isinstance(data.get("latent"), dict) and not fields:
+        problems.append(Problem(f"{path} key 'latent'", "a [latent] section moves the fields "
+                                "by their prior's modes, and the case has no field parameter",
+                                "add a kind = \"field\" [[parameters]] table, or remove "
+                                "[latent]"))
     if fields:
         ensemble = cfg.ensemble if cfg is not None else None
         problems.extend(case_fields.field_problems(path, fields, parsed, case_fields.ensemble_size(
@@ -421,7 +432,7 @@ def load_case_file(case: str | Path) -> Case:
                 ParameterSpace(parameters=tuple(params)), info, cfg.case.time_tolerance_days,
                 end, cfg.misfit, cfg.simulator, cfg.physics, dict(cfg.noise),
                 tuple(case_fields.resolved(f, partial(_relative_to, path)) for _, f in fields),
-                cfg.ensemble.resolved([f for _, f in fields]), cfg.cluster)
+                cfg.ensemble.resolved([f for _, f in fields]), cfg.cluster, cfg.latent)
 
 
 def _before_first(path: Path, end: float, first: float) -> Problem:
@@ -495,7 +506,7 @@ def _hint(err: dict, key: str = "") -> str:
 
 _SECTIONS = {"case": CaseSection, "misfit": MisfitSettings, "simulator": SimulatorSettings,
              "physics": PhysicsSettings, "ensemble": EnsembleSpec, "noise": QuantityNoise,
-             "cluster": ClusterSettings}
+             "cluster": ClusterSettings, "latent": LatentSpec}
 """The section a key sits in -> its model (a ``[[parameters]]`` entry's model is known by its
 kind, :func:`hmcore.model.case_fields.entry_choices`)."""
 
@@ -512,56 +523,6 @@ def _near_key(key: str, loc: tuple = ()) -> str:
         model = _SECTIONS.get(parts[0])
         choices = list(model.model_fields) if model is not None else []
     return did_you_mean(parts[-1], choices) if choices else ""
-
-
-def _check_parameters(params, info: DeckInfo, where: str) -> list[Problem]:
-    problems = []
-    nx, ny, nz = info.dims
-    for p in params:
-        unknown = [w for w in p.wells if w not in info.wells]
-        if unknown:
-            problems.append(Problem(f"{where} '{p.name}'", f"unknown well(s) {unknown}"
-                                    + _near(unknown, info.wells),
-                                    f"the deck's wells are {sorted(info.wells)}"))
-        problems.extend(_check_regions(p, info, where))
-        missing_faults = [f for f in p.faults if f not in info.faults]
-        if missing_faults:
-            problems.append(Problem(f"{where} '{p.name}'", f"unknown fault(s) {missing_faults}"
-                                    + _near(missing_faults, info.faults),
-                                    f"the deck's faults (FAULTS keyword) are "
-                                    f"{sorted(info.faults) or 'none'}"))
-        bad_layers = [k for k in p.layers if not 1 <= k <= nz]
-        if bad_layers:
-            problems.append(Problem(f"{where} '{p.name}'", f"layer(s) {bad_layers} outside 1..{nz}",
-                                    "layers are 1-based k indices"))
-        if p.box is not None:
-            i1, i2, j1, j2, k1, k2 = p.box
-            if i2 > nx or j2 > ny or k2 > nz:
-                problems.append(Problem(f"{where} '{p.name}'", f"box {p.box} outside the grid "
-                                        f"{nx}x{ny}x{nz}", "use 1-based indices inside the grid"))
-        for kw in p.keywords:
-            if kw.upper() in ("PORO", "PERMX", "PERMY", "PERMZ", "NTG") and \
-                    kw.upper() not in info.properties:
-                problems.append(Problem(f"{where} '{p.name}'", f"the deck defines no {kw}",
-                                        "multiply a keyword the GRID section defines"))
-    return problems
-
-
-def _check_regions(p, info: DeckInfo, where: str) -> list[Problem]:
-    """A region parameter names a region keyword the GRID section defines, and its numbers."""
-    if p.region is None and p.kind != "multregt":
-        return []
-    keyword = (p.region or "MULTNUM").upper()
-    if keyword not in info.regions or keyword not in info.grid_keywords:
-        defined = sorted(k for k in info.regions if k in info.grid_keywords)
-        return [Problem(f"{where} '{p.name}'", f"the deck's GRID section defines no {keyword}, "
-                        "which MULTIREG/MULTREGT read", f"use one it defines ({defined or 'none'})"
-                        f" or add {keyword} to the GRID section")]
-    unknown = [n for n in p.region_numbers if n not in info.regions[keyword]]
-    if unknown:
-        return [Problem(f"{where} '{p.name}'", f"{keyword} has no region(s) {unknown}",
-                        f"the deck's {keyword} values are {list(info.regions[keyword])}")]
-    return []
 
 
 def _check_observed_against_deck(obs: pd.DataFrame, info: DeckInfo, path: Path) -> list[Problem]:

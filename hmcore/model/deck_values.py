@@ -70,8 +70,8 @@ def base_values(info: DeckInfo, space: ParameterSpace) -> dict[str, float]:
         if p.kind == "skin":
             wells = p.wells or tuple(info.producers)
             v = float(np.mean([skins.get(w, 0.0) for w in wells])) if wells else 0.0
-        elif p.kind == "relperm" and p.mode == "endpoint":
-            v = 0.0  # a shift: none
+        elif (p.kind == "relperm" and p.mode == "endpoint") or p.kind == "latent":
+            v = 0.0  # a shift: none; a latent coefficient: the prior's mean
         else:
             v = 1.0
         out[p.name] = float(np.clip(v, p.low, p.high))

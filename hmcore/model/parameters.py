@@ -35,6 +35,10 @@ Kinds (each turns a value into deck edits, see :mod:`hmcore.model.run_deck`):
   follow it).
 * ``fault`` - set the transmissibility multiplier (``MULTFLT``) of the faults named in
   ``faults`` (the deck's ``FAULTS`` names), replacing the deck's own multiplier.
+* ``latent`` - hmflow's own, never a case file's: the coefficient of one mode of the fields'
+  prior ensemble (:mod:`hmcore.fields.latent`, a case's ``[latent]`` section). It edits no deck
+  text; the run writes the fields the coefficients make
+  (:class:`hmcore.fields.members.LatentSimulator`).
 """
 
 from __future__ import annotations
@@ -60,6 +64,7 @@ class ParameterKind(StrEnum):
     MULTREGT = "multregt"
     WPIMULT = "wpimult"
     TABLE_MULTIPLY = "table_multiply"
+    LATENT = "latent"
 
 
 Bound = Annotated[float, Strict(), AllowInfNan(False)]  # a finite number (TOML true/inf refused)

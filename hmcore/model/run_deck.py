@@ -164,6 +164,8 @@ def _parameter_edits(p: Parameter, value: float, info: DeckInfo) -> list[Edit]:
         return [FaultMultiplier(tuple(p.faults), value)]
     if p.kind == "wpimult":
         return [PiMultiplier(tuple(p.wells or info.producers), value, p.start_day)]
+    if p.kind == "latent":  # the fields it makes are the run's (LatentSimulator), not the deck's
+        return []
     wells = p.wells or tuple(info.producers)
     return [SetSkin(tuple(wells), value, p.layers)]
 

@@ -85,6 +85,66 @@ def simulator_problems(backend: str, key: str) -> list[Problem]:
 
 
 # ----------------------------------------------------------------------------- parameters
+def deck_reference_problems(params, info: DeckInfo, where: str) -> list[Problem]:
+    """What each parameter names exists in the deck: its wells, region keyword and numbers,
+    faults, layers, box and GRID keywords. A ``latent`` parameter is hmflow's own and names
+    nothing; one given in a case file (``where``) is refused."""
+    problems = []
+    nx, ny, nz = info.dims
+    for p in params:
+        if p.kind == ParameterKind.LATENT:
+            if where.endswith("[[parameters]]"):
+                problems.append(Problem(f"{where} '{p.name}'", "kind 'latent' is hmflow's own: "
+                                        "the coefficient of a mode of the fields' prior",
+                                        "give the case a [latent] section, which makes them"))
+            continue
+        unknown = [w for w in p.wells if w not in info.wells]
+        if unknown:
+            problems.append(Problem(f"{where} '{p.name}'", f"unknown well(s) {unknown}"
+                                    + (did_you_mean(unknown[0], info.wells) if len(unknown) == 1 else ""),
+                                    f"the deck's wells are {sorted(info.wells)}"))
+        problems.extend(_region_problems(p, info, where))
+        missing_faults = [f for f in p.faults if f not in info.faults]
+        if missing_faults:
+            problems.append(Problem(f"{where} '{p.name}'", f"unknown fault(s) {missing_faults}"
+                                    + (did_you_mean(missing_faults[0], info.faults)
+                                       if len(missing_faults) == 1 else ""),
+                                    f"the deck's faults (FAULTS keyword) are "
+                                    f"{sorted(info.faults) or 'none'}"))
+        bad_layers = [k for k in p.layers if not 1 <= k <= nz]
+        if bad_layers:
+            problems.append(Problem(f"{where} '{p.name}'", f"layer(s) {bad_layers} outside 1..{nz}",
+                                    "layers are 1-based k indices"))
+        if p.box is not None:
+            i1, i2, j1, j2, k1, k2 = p.box
+            if i2 > nx or j2 > ny or k2 > nz:
+                problems.append(Problem(f"{where} '{p.name}'", f"box {p.box} outside the grid "
+                                        f"{nx}x{ny}x{nz}", "use 1-based indices inside the grid"))
+        for kw in p.keywords:
+            if kw.upper() in ("PORO", "PERMX", "PERMY", "PERMZ", "NTG") and \
+                    kw.upper() not in info.properties:
+                problems.append(Problem(f"{where} '{p.name}'", f"the deck defines no {kw}",
+                                        "multiply a keyword the GRID section defines"))
+    return problems
+
+
+def _region_problems(p, info: DeckInfo, where: str) -> list[Problem]:
+    """A region parameter names a region keyword the GRID section defines, and its numbers."""
+    if p.region is None and p.kind != "multregt":
+        return []
+    keyword = (p.region or "MULTNUM").upper()
+    if keyword not in info.regions or keyword not in info.grid_keywords:
+        defined = sorted(k for k in info.regions if k in info.grid_keywords)
+        return [Problem(f"{where} '{p.name}'", f"the deck's GRID section defines no {keyword}, "
+                        "which MULTIREG/MULTREGT read", f"use one it defines ({defined or 'none'})"
+                        f" or add {keyword} to the GRID section")]
+    unknown = [n for n in p.region_numbers if n not in info.regions[keyword]]
+    if unknown:
+        return [Problem(f"{where} '{p.name}'", f"{keyword} has no region(s) {unknown}",
+                        f"the deck's {keyword} values are {list(info.regions[keyword])}")]
+    return []
+
+
 UNCONDITIONAL = (ParameterKind.MULTIPLY, ParameterKind.MULTREGT, ParameterKind.FAULT)
 """Kinds whose edit is always written with the value (a MULTIPLY, MULTREGT or MULTFLT record
 at the end of GRID): once the deck renders, their text changes with the value by itself."""

@@ -93,7 +93,7 @@ def run(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     if campaign is not None:  # the name known: refused before the case is read
         hold_name(storage.resolve(), fork or campaign, "campaign")
     c = load_case(case)  # clear errors before any simulator time or Prefect start-up
-    refuse(scalar_problems(c))
+    refuse(scalar_problems(c, latent=True))
     check_cluster(c, task_runner, storage.resolve())
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     check_inputs(agent, budget, workers, task_runner)

@@ -106,14 +106,14 @@ def check(case: str = typer.Option("synthetic", "--case", help=CASE_HELP)) -> No
     for p in c.space.parameters:
         console.print(f"  parameter {p.name:<12} {p.kind:<9} [{p.low:g}, {p.high:g}] {p.description}")
     if c.fields:
-        console.print("\n".join(field_lines(c.fields, c.ensemble)), highlight=False,
+        console.print("\n".join(field_lines(c.fields, c.ensemble, c.latent)), highlight=False,
                       markup=False)
     console.print(case_noise_text(c), highlight=False, markup=False)
 
 
-def field_lines(fields, ensemble) -> list[str]:
-    """``check``'s lines for a case's field parameters (keyword, prior, zones, bounds) and
-    its ``[ensemble]`` settings."""
+def field_lines(fields, ensemble, latent=None) -> list[str]:
+    """``check``'s lines for a case's field parameters (keyword, prior, zones, bounds), its
+    ``[ensemble]`` settings and its ``[latent]`` section."""
     lines = []
     for f in fields:
         low, high = f.bounds
@@ -128,8 +128,17 @@ def field_lines(fields, ensemble) -> list[str]:
     lines.append(f"  ensemble  {e.size} members, weights {', '.join(f'{w:g}' for w in e.weights)}"
                  f" (inflation {', '.join(f'{a:.3g}' for a in e.alphas)}), at least {e.minimum} "
                  f"must run, localisation {localisation}, seed {e.seed}")
-    lines.append("  note      the fields are for the ensemble smoother (docs/ensembles.md); "
-                 "`hmflow run`, `bench` and `diagnose` calibrate the scalar parameters only")
+    if latent is None:
+        lines.append("  note      the fields are for the ensemble smoother (docs/ensembles.md); "
+                     "`hmflow run`, `bench` and `diagnose` calibrate the scalar parameters "
+                     "only (a [latent] section lets `hmflow run` move the fields)")
+        return lines
+    cap = f", at most {latent.max_modes}" if latent.max_modes else ""
+    lines.append(f"  latent    `hmflow run` moves the fields by the leading modes of the "
+                 f"{ensemble.size}-member prior (seed {ensemble.seed}) holding "
+                 f"{latent.share:.0%} of its variance{cap}; coefficients in "
+                 f"[-{latent.bound:g}, {latent.bound:g}], prior {latent.prior} "
+                 "(docs/ensembles.md, \"Latent actions\")")
     return lines
 
 

@@ -79,8 +79,9 @@ def deploy_target(case: str, flow: str | None) -> Target:
     chosen = cast(FlowKind, flow or ("ensemble" if loaded.fields else "campaign"))
     why = given if flow else (f"case {loaded.name} has field parameters {names}"
                               if loaded.fields else f"case {loaded.name} has no field parameter")
-    rules = ensemble_problems if chosen == "ensemble" else scalar_problems
-    return Target(chosen, why, loaded, tuple(rules(loaded)))
+    problems = (ensemble_problems(loaded) if chosen == "ensemble"
+                else scalar_problems(loaded, latent=True))  # a campaign moves [latent] modes
+    return Target(chosen, why, loaded, tuple(problems))
 
 
 def campaign_only_problems(target: Target, given: list[str]) -> list[str]:
