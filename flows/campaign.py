@@ -33,7 +33,7 @@ from storage import ArtifactStore, EvaluationJournal, validate_name
 from storage.lock import NameHeldError, NameKind, NameLock
 from tasks.case import prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
-from tasks.latent import BASIS_DOC, latent_settings, prepare_latent
+from tasks.latent import BASIS_DOC, latent_conflict, latent_settings, prepare_latent
 from tasks.noise import store_noise
 from tasks.posterior import draw_posterior, plan_jacobian
 from tasks.reference import reference_name, reference_settings, run_references
@@ -196,6 +196,9 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
     except NameHeldError as exc:
         return refused(exc)
     try:
+        conflict = latent_conflict(storage, campaign, loaded)  # before anything is written
+        if conflict:
+            return refused(ValueError(conflict))
         latent = prepare_latent(loaded, storage, campaign) if loaded.latent else None
         if latent is not None:  # the fields' modes join the space, first
             loaded = latent.case
@@ -205,14 +208,15 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
         simulator_of = latent.job_simulator if latent is not None else (lambda job: None)
         case_version = prepare_deck(loaded, case, storage, campaign)
         try:  # a name bound to other settings (another case, method or version): one clear line
-            check_campaign_settings(storage, campaign, {**latent_settings(loaded),
+            check_campaign_settings(storage, campaign, {**latent_settings(loaded, latent),
                 "case_artifact": case_version.ref(), "agent": agent, "seed": seed,
                 "agent_settings": agent_settings or {}, "workers": workers,
                 "scoring_version": SCORING_VERSION, "method_version": method_version(agent),
                 "objective": loaded.misfit.objective,
                 "reference": reference, "deck_files": deck_file_hashes(loaded),
                 **({"forked_from": origin} if origin else {})})
-            check_campaign_settings(storage, reference, reference_settings(case_version))
+            check_campaign_settings(storage, reference, {**reference_settings(case_version),
+                                                         **latent_settings(loaded, latent)})
         except ValueError as exc:
             return refused(exc)
         journal = EvaluationJournal(ArtifactStore(storage), campaign)

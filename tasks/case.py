@@ -55,7 +55,9 @@ def prepare_deck(case: Case, case_ref: str, store_root: str, campaign: str) -> A
             "misfit": case.misfit.model_dump(), "simulator": case.simulator.model_dump(),
             "physics": case.physics.model_dump(), "wells": sorted(case.info.wells),
             "dims": case.info.dims, "end_days": case.info.end_days,
-            "fit_history_end_days": observations.history_end_days}), indent=2))
+            "fit_history_end_days": observations.history_end_days,
+            **({"latent": case.latent.model_dump(mode="json")} if case.latent else {})}),
+            indent=2))
 
     return store.put(campaign, "case", {"case": case_ref, **case_fingerprint(case)}, write,
                      code_version())

@@ -81,7 +81,8 @@ def collect(store_root: str, campaign: str, reference: str | None,
     refs = {}
     if reference and store.has_campaign(reference):
         refs = {r["index"]: r for r in EvaluationJournal(store, reference).rows()}
-    truth_known = case_truth(Path(case_doc["source"])) is not None
+    # a latent case's floor runs the basis's image of the deck's fields, not a truth
+    truth_known = case_truth(Path(case_doc["source"])) is not None and not case_doc.get("latent")
     floor = add("truth" if truth_known else "deck", 0,
                 _summary(scored(refs.get(FLOOR)).get("run_dir")))
     add("centre", 0, _summary(scored(refs.get(CENTRE)).get("run_dir")))

@@ -5,7 +5,8 @@ leading modes (:mod:`hmcore.fields.latent`, :mod:`hmcore.model.latent_case`).
 ``cell`` as an ensemble's table labels them, ``mean`` and one column per mode, float64) and
 ``basis.json`` (the modes kept, the share of the prior's variance they hold, the modes the
 prior had, the section, the prior's seeds, and the coefficients of the deck's own fields).
-Drawn once: a rerun with the same case and code reuses the stored version. Every call of the
+Drawn once: a rerun with the same inputs reuses the stored version, whatever code made it, and
+the campaign's name is bound to its hash (:func:`latent_settings`). Every call of the
 campaign then runs with :class:`hmcore.fields.members.LatentSimulator` bound to its
 coefficients (:meth:`LatentSetup.simulator`).
 """
@@ -33,7 +34,7 @@ from hmcore.model.latent_case import (
 )
 from hmcore.scoring.evaluation import simulator_for
 from hmcore.model.fingerprint import case_fingerprint
-from storage import ArtifactStore, ArtifactVersion, code_version
+from storage import ArtifactStore, ArtifactVersion, code_version, sha256_json, to_jsonable
 
 LATENT_STEP = "latent-basis"
 BASIS_FILE = "basis.parquet"
@@ -64,16 +65,49 @@ class LatentSetup:
         return self.simulator(job.values)
 
 
-def latent_settings(case: Case) -> dict:
-    """What a campaign's name is bound to besides its case artifact (which holds the scalar
-    parameters only): the ``[latent]`` section, the fields and the prior ensemble's size and
-    seed; {} for a case without ``[latent]`` (its settings as before)."""
+def latent_settings(case: Case, setup: LatentSetup | None = None) -> dict:
+    """What a campaign's name (and its reference journal's) is bound to besides its case
+    artifact: the ``[latent]`` section, the fields, the prior ensemble's size and seed and,
+    with ``setup``, the stored basis's hash (so that a resumed campaign reads its journaled
+    coefficients in the basis they were made in); {} for a case without ``[latent]``."""
     if case.latent is None:
         return {}
-    return {"latent": {"section": case.latent.model_dump(mode="json"),
-                       "fields": [f.model_dump(mode="json", by_alias=True)
-                                  for f in case.fields],
-                       "members": case.ensemble.size, "seed": case.ensemble.seed}}
+    bound = {"section": case.latent.model_dump(mode="json"),
+             "fields": [f.model_dump(mode="json", by_alias=True) for f in case.fields],
+             "members": case.ensemble.size, "seed": case.ensemble.seed}
+    if setup is not None:
+        bound["basis_sha256"] = setup.version.manifest["files"][BASIS_FILE]["sha256"]
+    return {"latent": bound}
+
+
+def latent_conflict(storage: str, campaign: str, case: Case) -> str | None:
+    """One line when ``campaign`` is bound to other latent settings than ``case``'s (another
+    section, fields or prior, or none): checked before the basis is drawn into it."""
+    stored = ArtifactStore(storage).settings(campaign)
+    if stored is None:
+        return None
+    before = dict(stored.get("latent") or {})
+    before.pop("basis_sha256", None)
+    now = latent_settings(case).get("latent") or {}
+    if before == now:
+        return None
+    if not before or not now:
+        return (f"campaign '{campaign}' in {storage} was started "
+                f"{'with' if before else 'without'} a [latent] section and the case has "
+                f"{'none' if before else 'one'}; choose another --campaign name")
+    diff = sorted(k for k in set(before) | set(now) if before.get(k) != now.get(k))
+    return (f"campaign '{campaign}' in {storage} was started with other latent settings "
+            f"({', '.join(diff)} differ); set them back or choose another --campaign name")
+
+
+def _stored_basis(store: ArtifactStore, campaign: str, inputs: dict) -> ArtifactVersion | None:
+    """The newest intact basis made from ``inputs``, whatever code made it: a resumed
+    campaign keeps the basis it started with."""
+    wanted = sha256_json(to_jsonable(inputs, "inputs"))
+    for version in reversed(store.versions(campaign, LATENT_STEP)):
+        if version.manifest.get("inputs_hash") == wanted and not version.verify():
+            return version
+    return None
 
 
 @task(name="latent-basis", cache_policy=NO_CACHE)
@@ -98,7 +132,9 @@ def prepare_latent(case: Case, storage: str, campaign: str) -> LatentSetup:
                "deck_coefficients": [float(v) for v in deck_coefficients(case, grid, basis)]}
         (directory / BASIS_DOC).write_text(json.dumps(doc, indent=2) + "\n")
 
-    version = ArtifactStore(storage).put(campaign, LATENT_STEP, inputs, write, code_version())
+    store = ArtifactStore(storage)
+    version = _stored_basis(store, campaign, inputs) or store.put(campaign, LATENT_STEP, inputs,
+                                                                   write, code_version())
     doc = version.read_json(BASIS_DOC)
     basis = LatentBasis.from_table(version.read_parquet(BASIS_FILE), doc["share"],
                                    doc["available"])

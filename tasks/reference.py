@@ -29,7 +29,7 @@ def reference_name(campaign: str) -> str:
 def reference_jobs(case: Case, floor: Mapping[str, float] | None = None) -> list[Job]:
     """Call 0: the truth's values (known truth) or the deck's own, ``floor`` overriding them
     (the latent coefficients of the deck's fields); call 1: the box's centre."""
-    truth = {**base_values(case.info, case.space), **(benchmark.case_truth(case.source) or {}),
+    truth = {**(benchmark.case_truth(case.source) or base_values(case.info, case.space)),
              **(floor or {})}
     truth = {n: float(truth[n]) for n in case.space.names}
     centre = np.zeros(case.space.dim)

@@ -20,6 +20,7 @@ from hmcore.fields.layout import Layout
 from hmcore.fields.members import INCLUDE_NAME, LatentSimulator, ensemble_table
 from hmcore.fields.spec import FieldSpec
 from hmcore.fields.transform import to_physical
+from hmcore.reporting.identifiability import assess
 
 
 def correlated_ensemble(rng: np.random.Generator, members: int = 40, p: int = 300,
@@ -195,3 +196,35 @@ def test_the_latent_simulator_runs_the_fields_of_the_calls_coefficients(tmp_path
     expected = _Grid().full(to_physical(basis.fields(z), poro))
     np.testing.assert_allclose(written, expected, rtol=1e-6)
     assert inner.decks[0].index("INCLUDE") < inner.decks[0].index("PROPS")
+
+
+def test_the_sign_of_each_mode_is_fixed_by_its_largest_entry():
+    X = correlated_ensemble(np.random.default_rng(8))
+    basis = LatentBasis.of_ensemble(X, share=0.95)
+    top = np.abs(basis.modes).argmax(axis=1)
+    assert (basis.modes[np.arange(basis.k), top] > 0).all()
+    again = LatentBasis.of_ensemble(X[::-1].copy(), share=0.95)  # the members in another order
+    np.testing.assert_allclose(again.modes, basis.modes, atol=1e-9 * np.abs(basis.modes).max())
+
+
+def test_the_prior_determines_a_coefficient_the_data_leave_free():
+    """The identifiability (and the Laplace draws on it) of a latent campaign stand on the
+    posterior the objective minimises: with the prior's rows, a coefficient no datum moves
+    has the prior's 95 % interval, +-1.96, not the whole box."""
+    parameters = [{"name": n, "kind": "latent", "low": -3.0, "high": 3.0}
+                  for n in ("mode_01", "mode_02")]
+    base, h = np.array([0.1, 0.0]), 0.01
+
+    def rec(index: int, a: np.ndarray) -> dict:
+        z = 3.0 * a
+        return {"index": index, "action": list(a), "status": "COMPLETE",
+                "residuals": [20.0 * (a[0] - 0.1), 5.0 * (a[0] - 0.1)],
+                "params": {"mode_01": z[0], "mode_02": z[1]}}
+
+    records = [rec(0, base), rec(1, base + [h, 0.0]), rec(2, base + [0.0, h])]
+    free = assess(records, parameters, 0, None)
+    held = assess(records, parameters, 0, None, prior=("mode_01", "mode_02"))
+    assert 1 in free.result.uninformed and free.result.share[1] == pytest.approx(1.0)
+    assert held.result.low[1] == pytest.approx(-1.96, abs=0.01)
+    assert held.result.high[1] == pytest.approx(1.96, abs=0.01)
+    assert held.result.high[0] - held.result.low[0] < free.result.high[0] - free.result.low[0]

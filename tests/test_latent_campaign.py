@@ -142,3 +142,25 @@ def test_latent_mistakes_are_named_before_any_run(tmp_path, small_case):
     good = load_case(latent_case_file(tmp_path / "c", small_case))
     assert scalar_problems(good, latent=True) == []
     assert "hmflow run" in scalar_problems(good)[0]  # a benchmark or a diagnosis refuses it
+
+
+def test_a_resume_keeps_its_basis_and_other_latent_settings_are_refused(run, tmp_path,
+                                                                          small_case,
+                                                                          monkeypatch):
+    import tasks.latent as latent_task
+
+    loaded = load_case(run["case"])
+    first = run["store"].versions("lat", LATENT_STEP)
+    monkeypatch.setattr(latent_task, "code_version", lambda: "a later commit")
+    setup = latent_task.prepare_latent.fn(loaded, str(run["storage"]), "lat")
+    assert run["store"].versions("lat", LATENT_STEP) == first  # reused, none drawn again
+    assert setup.version.version == first[-1].version
+    assert latent_task.latent_conflict(str(run["storage"]), "lat", loaded) is None
+
+    other = load_case(latent_case_file(tmp_path / "d", small_case, "share = 0.7\n"))
+    said = latent_task.latent_conflict(str(run["storage"]), "lat", other)
+    assert said is not None and "section" in said and "another --campaign" in said
+    plain = tmp_path / "e"
+    shutil.copytree(small_case.parent, plain, ignore=shutil.ignore_patterns("truth*"))
+    said = latent_task.latent_conflict(str(run["storage"]), "lat", load_case(plain / small_case.name))
+    assert said is not None and "with a [latent] section" in said

@@ -257,4 +257,4 @@ class Objective:
                 "refined_from_call": self.refined_from,
                 "rho": dict(self.observations.rho) if self.observations is not None else {},
                 "n_noise": self.observations.n_noise("fit") if self.observations is not None
-                else None}
+                else None, **({"prior": list(self.prior)} if self.prior else {})}

@@ -105,6 +105,9 @@ class LatentBasis:
         k = int(np.searchsorted(held, share - 1e-12) + 1)
         k = min(k, lam.size, max_modes or lam.size)
         modes = U[:, :k].T @ A                      # row i: s_i v_i
+        # a mode's sign is arbitrary (eigh's); fixed by its largest entry, positive
+        top = np.abs(modes).argmax(axis=1)
+        modes *= np.where(modes[np.arange(k), top] < 0, -1.0, 1.0)[:, None]
         return cls(mean, modes, float(held[k - 1]), int(lam.size))
 
     def fields(self, z: Sequence[float] | np.ndarray) -> np.ndarray:

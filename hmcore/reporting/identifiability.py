@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from hmcore.calibration.loop import best_record
+from hmcore.fields.latent import prior_residuals
 from hmcore.model.parameters import Parameter, Scaling
 from hmcore.reporting.paper_tables import markdown_table
 from hmcore.scoring.identifiability import (
@@ -108,12 +109,14 @@ def residuals_of(record: dict, obs: ObservationSet | None) -> tuple[np.ndarray |
 
 
 def assess(records: list[dict], parameters: list[dict], best_index: int,
-           obs: ObservationSet | None, n_noise: int | None = None, agent: str = ""
-           ) -> Finding:
+           obs: ObservationSet | None, n_noise: int | None = None, agent: str = "",
+           prior: tuple[str, ...] = ()) -> Finding:
     """The identifiability at call ``best_index`` of a campaign's ``records`` (its journal in
     call order, each with ``action``, ``status`` and ``simulated`` or ``residuals``), for the
     case's ``parameters`` (``case.json``'s), whitened by ``obs``; ``n_noise``: the residuals
-    that are noise (default: the vector's length)."""
+    that are noise (default: the vector's length); ``prior``: latent coefficients whose
+    standard normal prior joins the residuals, as in the campaign's objective
+    (:mod:`hmcore.calibration.objective`), so that the posterior is the prior's too."""
     space = [Parameter.model_validate(p) for p in parameters]
     names = [p.name for p in space]
     if any(r.get("action") is None for r in records):
@@ -134,8 +137,8 @@ def assess(records: list[dict], parameters: list[dict], best_index: int,
         return Finding(None, _no_stencil(len(names), best_index, agent), best_index, agent=agent)
     stencil = Stencil(order[stencil.base], tuple(order[j] for j in stencil.runs),
                       stencil.steps, stencil.distance)
-    base, source = residuals_of(by_index[stencil.base], obs)
-    runs = [residuals_of(by_index[j], obs)[0] for j in stencil.runs]
+    base, source = _with_prior(by_index[stencil.base], obs, prior)
+    runs = [_with_prior(by_index[j], obs, prior)[0] for j in stencil.runs]
     if base is None or any(r is None or r.shape != base.shape for r in runs):
         return Finding(None, "The stencil's runs have residual vectors of different lengths.",
                        best_index, stencil, agent=agent)
@@ -143,6 +146,14 @@ def assess(records: list[dict], parameters: list[dict], best_index: int,
     post = laplace(J, base, n_noise if n_noise else len(base))
     result = identifiability(names, Scaling.of(space), actions[pos[best_index]], post)
     return Finding(result, "", best_index, stencil, source, agent)
+
+
+def _with_prior(record: dict, obs: ObservationSet | None, prior: tuple[str, ...]
+                ) -> tuple[np.ndarray | None, str]:
+    r, source = residuals_of(record, obs)
+    if r is None or not prior:
+        return r, source
+    return np.concatenate([r, prior_residuals(record.get("params") or {}, prior)]), source
 
 
 def _no_stencil(d: int, best_index: int, agent: str) -> str:
@@ -203,7 +214,11 @@ def load_identifiability(store: ArtifactStore, campaign: str) -> Finding | None:
     n_noise = (doc.get("noise") or {}).get("n_noise") or (obs.n_noise("fit") if obs else None)
     after = EvaluationJournal(store, campaign, jacobian_journal(int(best["index"]))).rows()
     records = records + [{**r, "index": JACOBIAN_OFFSET + int(r["index"])} for r in after]
-    return assess(records, case_doc["parameters"], int(best["index"]), obs, n_noise, agent)
+    latent = case_doc.get("latent") or {}
+    prior = tuple(p["name"] for p in case_doc["parameters"] if p.get("kind") == "latent") \
+        if latent.get("prior") == "regularised" and doc.get("objective") == "likelihood" else ()
+    return assess(records, case_doc["parameters"], int(best["index"]), obs, n_noise, agent,
+                  prior)
 
 
 # ------------------------------------------------------------------ words and tables

@@ -122,6 +122,10 @@ def choice_markdown(best: dict, choice: Choice) -> list[str]:
             label, label), doc))
     lines += ["", E_WORDS]
     noise = choice.noise or {}
+    if noise.get("prior"):
+        lines += ["", f"The likelihood here includes the prior of the {len(noise['prior'])} "
+                  "latent coefficients (standard normal a priori): (chi2 + sum z^2) / n, "
+                  "-2 log-posterior per row, which the best call minimises."]
     if noise.get("refinement"):
         lines += ["", f"The likelihood is under the noise refined {noise['refinement']} time(s) "
                   f"from the fit's residuals, last from call {noise['refined_from_call'] + 1}."]

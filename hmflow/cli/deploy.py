@@ -76,8 +76,11 @@ def deploy_target(case: str, flow: str | None) -> Target:
         return Target(flow or "campaign", given,
                       problems=tuple(f"--case {case}: {p}" for p in exc.problems))
     names = ", ".join(f.name for f in loaded.fields)
-    chosen = cast(FlowKind, flow or ("ensemble" if loaded.fields else "campaign"))
-    why = given if flow else (f"case {loaded.name} has field parameters {names}"
+    chosen = cast(FlowKind, flow or ("ensemble" if loaded.fields and loaded.latent is None
+                                     else "campaign"))
+    why = given if flow else (f"case {loaded.name} has a [latent] section (its fields moved "
+                              "by their prior's modes)" if loaded.latent is not None
+                              else f"case {loaded.name} has field parameters {names}"
                               if loaded.fields else f"case {loaded.name} has no field parameter")
     problems = (ensemble_problems(loaded) if chosen == "ensemble"
                 else scalar_problems(loaded, latent=True))  # a campaign moves [latent] modes
