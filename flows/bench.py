@@ -1,4 +1,5 @@
-"""The benchmark flow: the reference runs (floor, prior centre) -> one ordinary campaign per
+"""The benchmark flow: (for a ``[latent]`` case, the fields' prior modes, as a campaign makes
+them) -> the reference runs (floor, prior centre) -> one ordinary campaign per
 method x seed (each resumes after a kill; a stopped benchmark continues where it was) ->
 consolidate into Parquet, a Markdown table and a plot."""
 
@@ -20,6 +21,7 @@ from hmcore.scoring.evaluation import SCORING_VERSION
 from storage import ArtifactStore, EvaluationJournal
 from tasks.bench import consolidate_bench
 from tasks.case import prepare_deck
+from tasks.latent import latent_conflict, latent_settings, prepare_latent, reference_runs
 from tasks.reference import reference_settings, run_references
 from tasks.simulate import observation_set
 
@@ -88,20 +90,27 @@ def bench_flow(case: str = "synthetic", methods: list[str] | None = None,
         if problems:
             raise ValueError("; ".join(problems))
         loaded = load_case(case)
-        problems = scalar_problems(loaded)
+        problems = scalar_problems(loaded, latent=True)
         if problems:
             raise ValueError("; ".join(problems))
     except USER_ERRORS as exc:
         return refused(exc)
     bench, reference, campaigns = bench_names(loaded.name, methods, seeds, name)
+    conflict = latent_conflict(storage, reference, loaded)  # before anything is written
+    if conflict:
+        return refused(ValueError(conflict))
+    latent = prepare_latent(loaded, storage, reference) if loaded.latent else None
+    loaded = latent.case if latent is not None else loaded  # the fields' modes, first
     case_version = prepare_deck(loaded, case, storage, reference)
-    check_campaign_settings(storage, reference, reference_settings(case_version))
+    check_campaign_settings(storage, reference, {**reference_settings(case_version),
+                                                 **latent_settings(loaded, latent)})
     # one benchmark, one budget: methods compared at another budget or worker count are
     # another benchmark (another --name)
     check_campaign_settings(storage, bench, {"case_artifact": case_version.ref(),
                                              "budget": budget, "workers": workers})
     with make_runner(task_runner, workers, dask_address, loaded.cluster) as started:
-        run_references(loaded, storage, reference, started, observation_set(loaded))
+        run_references(loaded, storage, reference, started, observation_set(loaded),
+                       **reference_runs(latent))
     store = ArtifactStore(storage)
     for campaign, (method, seed) in campaigns.items():
         if complete(store, campaign, method, seed, budget, workers, loaded.misfit.objective):

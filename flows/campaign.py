@@ -33,7 +33,13 @@ from storage import ArtifactStore, EvaluationJournal, validate_name
 from storage.lock import NameHeldError, NameKind, NameLock
 from tasks.case import prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
-from tasks.latent import BASIS_DOC, latent_conflict, latent_settings, prepare_latent
+from tasks.latent import (
+    BASIS_DOC,
+    latent_conflict,
+    latent_settings,
+    prepare_latent,
+    reference_runs,
+)
 from tasks.noise import store_noise
 from tasks.posterior import draw_posterior, plan_jacobian
 from tasks.reference import reference_name, reference_settings, run_references
@@ -239,10 +245,8 @@ def campaign_flow(case: str = "synthetic", agent: Agent = DEFAULT_AGENT,
         progress.update([r for i, r in done.items() if i < budget])
 
         with make_runner(task_runner, workers, dask_address, loaded.cluster) as runner:
-            references = run_references(
-                loaded, storage, reference, runner, observations,
-                dict(zip(latent.names, latent.deck)) if latent is not None else None,
-                simulator_of)
+            references = run_references(loaded, storage, reference, runner, observations,
+                                        **reference_runs(latent))
 
             def run_jobs(jobs, destination=CAMPAIGN) -> list[dict]:
                 futures = [runner.submit(simulate, simulate_parameters(

@@ -53,14 +53,14 @@ def scalar_problems(loaded: Case, latent: bool = False) -> list[str]:
     """A calibration (a campaign's method, a benchmark's, a diagnosis's) moves the case's
     scalar parameters: a case of field parameters only has none, and is refused in one line
     before anything runs; [] for any other case (its fields, if any, are left at the deck's
-    values: they are the ensemble smoother's, docs/ensembles.md). A campaign (``latent``)
-    also moves a ``[latent]`` case's fields by their prior's modes; a benchmark and a
-    diagnosis do not, and refuse such a case."""
+    values: they are the ensemble smoother's, docs/ensembles.md). A campaign and a benchmark
+    (``latent``) also move a ``[latent]`` case's fields by their prior's modes; a diagnosis
+    does not, and refuses such a case."""
     if loaded.latent is not None and not latent:
         return [(f"case {loaded.name} ({loaded.source}) has a [latent] section: its fields are "
-                 "moved by their prior's modes in a campaign (hmflow run), not in a benchmark "
-                 "or a diagnosis (fix: run it with hmflow run --agent M for each method, or "
-                 "remove [latent] to move the scalar parameters only)")]
+                 "moved by their prior's modes in a campaign or a benchmark (hmflow run, "
+                 "hmflow bench), not in a diagnosis (fix: remove [latent] to diagnose the "
+                 "scalar parameters)")]
     if loaded.space.parameters or not loaded.fields or loaded.latent is not None:
         return []
     names = ", ".join(f.name for f in loaded.fields)

@@ -64,6 +64,19 @@ class LatentSetup:
     def job_simulator(self, job: Job) -> LatentSimulator:
         return self.simulator(job.values)
 
+    @property
+    def floor(self) -> dict[str, float]:
+        """The reference run "as given": the coefficients of the deck's own fields."""
+        return dict(zip(self.names, self.deck, strict=True))
+
+
+def reference_runs(setup: LatentSetup | None) -> dict:
+    """The keyword arguments of :func:`tasks.reference.run_references` for a campaign or a
+    benchmark on a latent case (its floor and its calls' simulator); {} for any other."""
+    if setup is None:
+        return {}
+    return {"floor": setup.floor, "simulator_of": setup.job_simulator}
+
 
 def latent_settings(case: Case, setup: LatentSetup | None = None) -> dict:
     """What a campaign's name (and its reference journal's) is bound to besides its case

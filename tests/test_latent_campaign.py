@@ -164,3 +164,28 @@ def test_a_resume_keeps_its_basis_and_other_latent_settings_are_refused(run, tmp
     shutil.copytree(small_case.parent, plain, ignore=shutil.ignore_patterns("truth*"))
     said = latent_task.latent_conflict(str(run["storage"]), "lat", load_case(plain / small_case.name))
     assert said is not None and "with a [latent] section" in said
+
+
+def test_a_benchmark_runs_every_method_over_the_same_modes(tmp_path, small_case):
+    from flows.bench import bench_flow, bench_names
+
+    case = latent_case_file(tmp_path / "case", small_case)
+    storage = tmp_path / "store"
+    result = bench_flow(case=str(case), methods=["lm", "random"], seeds=[1], budget=4,
+                        workers=2, storage=str(storage), name="lb")
+    assert isinstance(result, dict), result
+    store = ArtifactStore(storage)
+    _, reference, campaigns = bench_names("", ["lm", "random"], [1], "lb")
+    hashes = {name: store.latest(name, LATENT_STEP).manifest["files"][BASIS_FILE]["sha256"]
+              for name in (reference, *campaigns)}
+    assert len(set(hashes.values())) == 1, hashes  # one basis for the floor and every method
+    names = [p["name"] for p in store.latest("lb-reference", "case").read_json(
+        "case.json")["parameters"]]
+    for name in campaigns:
+        records = EvaluationJournal(store, name).rows()
+        assert len(records) == 4 and all(list(r["params"]) == names for r in records)
+    floor = EvaluationJournal(store, "lb-reference").get(0)
+    doc = store.latest("lb-reference", LATENT_STEP).read_json(BASIS_DOC)
+    np.testing.assert_allclose([floor["params"][n] for n in names], doc["deck_coefficients"])
+    summary = Path(result["summary_path"]).read_text()
+    assert "lm" in summary and "random" in summary

@@ -62,7 +62,7 @@ def bench(case: str = typer.Option("synthetic", "--case", help=CASE_HELP),
     storage = folder("--storage", storage)
     c = load_case(case)
     check_cluster(c, task_runner, storage.resolve())
-    refuse(scalar_problems(c))
+    refuse(scalar_problems(c, latent=True))
     workers = fit_workers(workers, c.simulator.cores_per_run, task_runner)
     chosen = list(AGENTS) if methods == "all" else [m.strip() for m in methods.split(",")
                                                     if m.strip()]
