@@ -6,9 +6,10 @@ simulator."""
 from __future__ import annotations
 
 import json
-
+import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hmcore.model.parameters import ParameterSpace
@@ -225,6 +226,152 @@ def test_the_judge_asks_each_effect_its_family_and_wells(synthetic):
     assert not judge_effects(_doc([skin]), [dated])["found"]
 
 
+SEED_31_BEFORE_THE_TREND = {
+    "partial_fault": [("partial_fault:j8:i9-18", 0.0022714848547635644)],
+    "offcentre_region": [("offcentre_region:PROD2:i10-14:j11-15", 0.30314672216946514)],
+    "relperm_endpoint": [("relperm_endpoint:water:+0.098", 0.09812491800823354)],
+    "two_kinds": [("regional_permeability:PROD2", 0.15863420771861766),
+                  ("fault_transmissibility:j14", 0.0028674032086675716)],
+    "contact": [("contact:woc:x1.0037", 1.0037349262806115)],
+    "dated_productivity": [("productivity_change:PROD1@547", 3.6095046822602783)],
+    "late_productivity": [("productivity_change:PROD4@1978", 3.0488392000041022)],
+    "pvt": [("pvt:rsvd:x0.8765", 0.8764776754391446)],
+    "relperm_scaling": [("relperm_scaling:gas:x0.477", 0.47734763912804024)],
+}
+"""What every generator drew for seed 31 on the synthetic deck of seed 0 before
+``permeability_trend`` and ``completion_change`` were added (d452073): the sweep's rows."""
+
+
+def test_the_generators_before_the_trend_draw_what_they_drew(synthetic):
+    from hmcore.scenarios.generators import generate
+
+    info, truth = synthetic
+    space = ParameterSpace.reference()
+    assert GENERATORS[:9] == tuple(SEED_31_BEFORE_THE_TREND)
+    for name, drawn in SEED_31_BEFORE_THE_TREND.items():
+        got = [(e.candidate.id, e.value) for e in generate(name, 31, info, space, truth)]
+        assert got == drawn, name
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_permeability_trend_and_a_recompletion_lie_beyond_the_library(synthetic, seed):
+    from hmcore.diagnosis.extensions import build_candidates
+    from hmcore.model.run_deck import trend_factors
+    from hmcore.scenarios.effects import load_hidden_effects
+    from hmcore.scenarios.generators import _oil_layers, generate
+
+    info, truth = synthetic
+    space = ParameterSpace.reference()
+    library = build_candidates(info, space, truth)
+    (trend,) = generate("permeability_trend", seed, info, space, truth)
+    p = trend.parameter
+    assert trend.kind == "unexplained" and p.kind == "trend"
+    assert p.keywords == ("PERMX", "PERMY") and 0.0 <= p.direction < 360.0
+    assert 2.0 <= trend.value <= 4.0
+    assert trend.candidate.details == {"generated": "permeability_trend", "expect_wells": []}
+    f = trend_factors(info.dims, p.direction, trend.value)
+    assert len(f) == info.dims[0] * info.dims[1]
+    assert min(f.values()) == pytest.approx(1 / trend.value)  # x1/f at one edge
+    assert max(f.values()) == pytest.approx(trend.value)  # x f at the other
+    assert math.prod(f.values()) == pytest.approx(1.0)  # nothing for the globals to take
+    for c in library:  # no box of the library holds one factor of it
+        if c.parameter.box and c.kind == "regional_permeability":
+            i0, i1, j0, j1 = c.parameter.box[:4]
+            inside = [f[(i, j)] for i in range(i0, i1 + 1) for j in range(j0, j1 + 1)]
+            assert max(inside) / min(inside) > 1.1, c.id
+    assert all(c.parameter.kind != "trend" for c in library)
+
+    (moved,) = generate("completion_change", seed, info, space, truth)
+    p, d = moved.parameter, moved.candidate.details
+    (well,) = p.wells
+    old = sorted({k for _, _, k in info.wells[well].connections})
+    new = list(p.layers)
+    assert moved.kind == "unexplained" and p.kind == "recomplete" and moved.value == 1.0
+    assert well in info.producers and not set(new) & set(old)  # other layers
+    assert new == list(range(new[0], new[-1] + 1)) and 1 <= len(new) <= len(old)
+    assert new[-1] + 1 == old[0] or new[0] - 1 == old[-1]  # next to the old ones
+    assert set(new) <= _oil_layers(info)[well]  # in the initial oil column
+    assert p.start_day in info.report_days and 0.3 <= p.start_day / info.end_days <= 0.6
+    assert d == {"generated": "completion_change", "expect_wells": [well],
+                 "start_day": p.start_day, "expect_kinds": ["productivity_change"]}
+    assert all(c.parameter.kind != "recomplete" for c in library)
+
+    again = generate("permeability_trend", seed, info, space, truth) + \
+        generate("completion_change", seed, info, space, truth)  # seeded
+    assert [(e.candidate.id, e.value) for e in again] == \
+        [(e.candidate.id, e.value) for e in (trend, moved)]
+    doc = {"effects": [trend.to_dict(), moved.to_dict()]}  # hidden_effect.json keeps them
+    path = Path(info.path).parent / f"hidden-{seed}.json"
+    path.write_text(json.dumps(doc))
+    back = load_hidden_effects(path)
+    assert [(e.candidate.id, e.parameter, e.candidate.details.get("expect_kinds"),
+             e.candidate.details.get("start_day")) for e in back] == \
+        [(trend.candidate.id, trend.parameter, None, None),
+         (moved.candidate.id, p, ["productivity_change"], p.start_day)]
+
+
+def test_a_trend_and_a_recompletion_are_hidden_truths_not_case_parameters(synthetic):
+    """The two kinds check what they need, and a case file that gives one is refused (they are
+    the edits of a hidden truth, like ``latent``)."""
+    from hmcore.model.parameters import Parameter
+    from hmcore.model.validation import deck_reference_problems
+    from hmcore.scenarios.generators import generate
+
+    info, truth = synthetic
+    with pytest.raises(ValueError, match="a trend needs one"):
+        Parameter(name="t", kind="trend", keywords=("PERMX",), low=0.1, high=10.0)
+    with pytest.raises(ValueError, match="a direction is for kind 'trend' only"):
+        Parameter(name="m", kind="multiply", keywords=("PERMX",), low=0.1, high=10.0,
+                  direction=30.0)
+    with pytest.raises(ValueError, match="'recomplete' needs one well"):
+        Parameter(name="r", kind="recomplete", wells=("PROD1",), low=0.1, high=10.0,
+                  start_day=100.0)
+    hidden = [e.parameter for name in ("permeability_trend", "completion_change")
+              for e in generate(name, 0, info, ParameterSpace.reference(), truth)]
+    assert deck_reference_problems(hidden, info, "hidden truth") == []
+    refused = deck_reference_problems(hidden, info, "case.toml [[parameters]]")
+    assert [x.what.split(":")[0] for x in refused] == [
+        "kind 'trend' is hmflow's own", "kind 'recomplete' is hmflow's own"]
+
+
+def test_a_recompletion_is_named_by_unexplained_or_that_well_s_dated_productivity(synthetic):
+    """`unexplained` first, or an accepted productivity change at the recompleted well starting
+    within 92 days that lowers the held-back misfit; a trend only by `unexplained`."""
+    from hmcore.scenarios.generators import generate
+    from hmcore.scenarios.judge import judge_effects
+
+    info, truth = synthetic
+    space = ParameterSpace.reference()
+    (moved,) = generate("completion_change", 1, info, space, truth)
+    w, start = moved.candidate.wells[0], moved.parameter.start_day
+    other = next(x for x in info.producers if x != w)
+    unexplained = {"id": "unexplained", "kind": "unexplained", "wells": [w], "layers": [],
+                   "chi2": None}
+
+    def dated(well, day):
+        return {"id": f"productivity_change:{well}@{day:g}", "kind": "productivity_change",
+                "wells": [well], "layers": [], "chi2": 60.0, "start_day": day}
+
+    assert judge_effects(_doc([], first=unexplained), [moved])["found"]
+    assert judge_effects(_doc([dated(w, start - 31)]), [moved])["found"]
+    assert not judge_effects(_doc([dated(w, start - 31)], after=0.03), [moved])["found"]
+    assert not judge_effects(_doc([dated(w, start + 200)]), [moved])["found"]
+    assert not judge_effects(_doc([dated(other, start)]), [moved])["found"]
+    skin = {"id": f"well_skin:{w}", "kind": "well_skin", "wells": [w], "layers": [],
+            "chi2": 60.0, "start_day": None}
+    assert not judge_effects(_doc([skin]), [moved])["found"]
+    none = {"id": "none", "kind": "none", "wells": [], "layers": [], "chi2": 3.0}
+    assert not judge_effects(_doc([], first=none), [moved])["found"]
+    assert judge_effects(_doc([], first=none), [moved],
+                         {"visible_in_fitted_history": False})["found"]  # invisible
+    (trend,) = generate("permeability_trend", 1, info, space, truth)
+    assert judge_effects(_doc([], first=unexplained), [trend])["found"]
+    box = {"id": f"regional_permeability:{w}", "kind": "regional_permeability", "wells": [w],
+           "layers": [], "chi2": 80.0, "machine": {"parameter": {"box": [1, 7, 1, 7, 1, 5]}}}
+    assert not judge_effects(_doc([box]), [trend])["found"]
+    assert not judge_effects(_doc([dated(w, start)]), [trend])["found"]
+
+
 def test_a_sweep_row_is_judged_again_from_its_kept_evidence(synthetic, tmp_path):
     """`bench_diagnosis.py --keep` copies a case's evidence; `--rejudge` judges the rows again
     from it (after a change of the judge), and the table counts `none` on an effect the
@@ -348,3 +495,112 @@ def test_the_contact_and_solution_gas_families_move_the_deck_s_equil_and_rsvd(sm
     assert float(moved["EQUIL"][0][4]) == pytest.approx(float(base["EQUIL"][0][4]))
     rs = [float(x) for x in moved["RSVD"][0]][1::2]
     assert rs == pytest.approx([0.9 * float(x) for x in base["RSVD"][0][1::2]])
+
+
+@pytest.fixture(scope="module")
+def small_base(small_case, tmp_path_factory):
+    """The small synthetic case, values (the globals neutral) and one OPM run of its deck with
+    them: what a hidden effect's run is compared with."""
+    from hmcore.cases import load_case
+    from hmcore.simulation.responses import read_responses
+    from hmcore.simulation.simulator import OpmFlow
+
+    case = load_case(str(small_case))
+    values = {**{p.name: 1.0 for p in case.space.parameters}, "skin": 0.0}
+    run = _hidden_deck(case, values, [], tmp_path_factory.mktemp("small-base"))
+    result = OpmFlow().run(run, run.parent / "run")
+    return case, values, read_responses(result.summary_path, sorted(case.info.wells))
+
+
+def _hidden_deck(case, values, effects, where):
+    """The case's deck with ``effects`` applied, written into ``where``."""
+    from hmcore.model.run_deck import prepare_run_deck
+
+    space = ParameterSpace(parameters=case.space.parameters + tuple(e.parameter for e in effects))
+    return prepare_run_deck(case.deck, {**values, **{e.parameter.name: e.value for e in effects}},
+                            space, where / "deck", case.info)
+
+
+def _run_against(base, case, deck):
+    """Wide WBHP, WGOR, WWCT (rows: well, day) of one OPM run of ``deck`` and of ``base``."""
+    from hmcore.simulation.responses import read_responses
+    from hmcore.simulation.simulator import OpmFlow
+
+    result = OpmFlow().run(deck, deck.parent.parent / "run")
+    got = read_responses(result.summary_path, sorted(case.info.wells))
+
+    def wide(df):
+        return df.pivot_table(index=["well", "days"], columns="quantity", values="value")
+
+    return wide(base), wide(got)
+
+
+@pytest.mark.opm
+def test_a_permeability_trend_is_in_the_truth_deck_and_moves_every_well(small_base, tmp_path):
+    """The trend's MULTIPLY records, one per column and keyword, carry its factors; in one run
+    every producer's BHP moves the way its column's factor says (less permeable: more
+    drawdown at the same oil rate)."""
+    from hmcore.diagnosis.extensions import well_column
+    from hmcore.eclipse.lexer import records, split_blocks
+    from hmcore.model.run_deck import trend_factors
+    from hmcore.scenarios.generators import generate
+
+    case, values, base = small_base
+    info = case.info
+    (trend,) = generate("permeability_trend", 0, info, case.space, values)
+    deck = _hidden_deck(case, values, [trend], tmp_path)
+    factors = trend_factors(info.dims, trend.parameter.direction, trend.value)
+    (block,) = [b for b in split_blocks(deck.read_text(), {"MULTIPLY", "PROPS"})
+                if b.keyword == "MULTIPLY"]
+    boxed = [r for r in records(block.body) if len(r) == 8]
+    assert len(boxed) == 2 * len(factors)
+    for keyword, factor, i, i2, j, j2, k1, k2 in boxed:
+        assert keyword.strip("'") in ("PERMX", "PERMY") and (i, j, k1, k2) == (i2, j2, "1", "5")
+        assert float(factor) == pytest.approx(factors[(int(i), int(j))], rel=1e-9)
+    before, after = _run_against(base, case, deck)
+    for w in info.producers:
+        f = factors[well_column(info, w)]
+        moved = (after.loc[w, "WBHP"] - before.loc[w, "WBHP"]).loc[:182]  # the first half-year
+        assert (abs(moved) > 1.0).all() and (np.sign(moved) == np.sign(math.log(f))).all(), w
+
+
+@pytest.mark.opm
+def test_a_recompletion_is_in_the_truth_schedule_and_moves_its_well_from_its_day(small_base,
+                                                                                   tmp_path):
+    """The recompleted well's COMPDAT at its report step (its old layers shut, the new ones
+    open, the skin kept); in one run the well is the base's until that day and not after,
+    while the other wells hardly move. Never into the aquifer: PROD4's layer 5 lies below the
+    water-oil contact here, and a PROD4 recompleted there (a draw before the oil-column rule)
+    produced water only, was shut by OPM at its next restart (WBHP 0), and the noisy history
+    of that case held negative pressures, which the case's check refuses."""
+    from hmcore.eclipse.lexer import records, split_blocks
+    from hmcore.scenarios.generators import _oil_layers, generate
+
+    case, values, base = small_base
+    info = case.info
+    oil = _oil_layers(info)
+    assert 5 not in oil["PROD4"] and oil["PROD3"] == {1, 2, 3, 4, 5}
+    for seed in range(6):
+        (e,) = generate("completion_change", seed, info, case.space, values)
+        assert set(e.parameter.layers) <= oil[e.parameter.wells[0]], e.candidate.id
+    (moved,) = generate("completion_change", 1, info, case.space, values)
+    w, day, layers = moved.candidate.wells[0], moved.parameter.start_day, moved.parameter.layers
+    old = sorted({k for _, _, k in info.wells[w].connections})
+    deck = _hidden_deck(case, values, [moved], tmp_path)
+    text = deck.read_text()
+    compdats = [records(b.body) for b in split_blocks(text, info.keyword_names)
+                if b.keyword == "COMPDAT"]
+    assert len(compdats) == 2  # the deck's own, and the recompletion
+    status = {int(r[3]): r[5].strip("'") for r in compdats[1]}
+    assert all(r[0].strip("'") == w and r[3] == r[4] and r[10] == "0" for r in compdats[1])
+    assert status == {**{k: "SHUT" for k in old}, **{k: "OPEN" for k in layers}}
+    schedule = text.split("\nSCHEDULE", 1)[1]
+    dates = schedule[:schedule.index("recompleted")].count("\nDATES")
+    assert info.report_days[dates] == day  # written after the report step of its day
+    before, after = _run_against(base, case, deck)
+    change = (after - before).abs()
+    early = change.loc[w][change.loc[w].index < day - 1e-6]
+    late = change.loc[w][change.loc[w].index >= day - 1e-6]
+    assert (early.to_numpy() < 1e-6).all() and late["WBHP"].max() > 5.0
+    others = change.drop(index=w, level="well")
+    assert others["WBHP"].max() < 0.2 * late["WBHP"].max()

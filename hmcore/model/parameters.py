@@ -39,6 +39,15 @@ Kinds (each turns a value into deck edits, see :mod:`hmcore.model.run_deck`):
   prior ensemble (:mod:`hmcore.fields.latent`, a case's ``[latent]`` section). It edits no deck
   text; the run writes the fields the coefficients make
   (:class:`hmcore.fields.members.LatentSimulator`).
+* ``trend`` - hmflow's own, never a case file's (a hidden truth's edit,
+  :mod:`hmcore.scenarios.generators`): multiply grid keywords by a factor that varies
+  log-linearly across the grid along the horizontal ``direction`` (degrees from +i towards +j):
+  x1/value at the grid's farthest column behind, x value at the farthest ahead
+  (:func:`hmcore.model.run_deck.trend_factors`, one ``MULTIPLY`` record per column).
+* ``recomplete`` - hmflow's own too: the one well of ``wells`` recompleted from ``start_day``
+  on, its connections so far shut and new ones opened in ``layers`` (a workover; a COMPDAT in the
+  schedule at that report step), the new connections' productivity index multiplied by the
+  value (``WPIMULT``; 1: as the deck's own connection factors compute it).
 """
 
 from __future__ import annotations
@@ -65,6 +74,8 @@ class ParameterKind(StrEnum):
     WPIMULT = "wpimult"
     TABLE_MULTIPLY = "table_multiply"
     LATENT = "latent"
+    TREND = "trend"
+    RECOMPLETE = "recomplete"
 
 
 Bound = Annotated[float, Strict(), AllowInfNan(False)]  # a finite number (TOML true/inf refused)
@@ -98,6 +109,9 @@ class Parameter(BaseModel):
     match: str | None = None
     mode: Literal["scale", "power", "endpoint"] = "scale"
     start_day: Bound | None = Field(default=None, gt=0)
+    direction: Bound | None = Field(default=None, exclude_if=lambda d: d is None)
+    """A ``trend``'s horizontal direction of increase, degrees from +i towards +j. Left out of a
+    dump when None, so that every other parameter is written as before."""
     log: bool = Field(default=False, exclude_if=lambda log: not log)
     """Scaled linearly in log(value) (a factor: equal steps are equal ratios), not in the
     value. Left out of a dump when False, so that a parameter without it is written as
@@ -109,9 +123,9 @@ class Parameter(BaseModel):
         if not self.low < self.high:
             raise ValueError(f"low < high must hold for parameter '{self.name}', "
                              f"got low={self.low}, high={self.high}")
-        if self.kind == "multiply":
+        if self.kind in ("multiply", "trend"):
             if not self.keywords:
-                raise ValueError(f"parameter '{self.name}' of kind 'multiply' needs keywords, "
+                raise ValueError(f"parameter '{self.name}' of kind '{self.kind}' needs keywords, "
                                  f"e.g. keywords = [\"PERMX\"]")
             bad = [k for k in self.keywords if k.upper() not in GRID_MULTIPLIABLE]
             if bad:
@@ -183,9 +197,18 @@ class Parameter(BaseModel):
         if self.log and self.low <= 0:
             raise ValueError(f"parameter '{self.name}': a log scale needs low > 0, "
                              f"got low={self.low}")
-        if self.start_day is not None and self.kind != "wpimult":
+        if self.start_day is not None and self.kind not in ("wpimult", "recomplete"):
             raise ValueError(f"parameter '{self.name}': start_day (an edit from a date on) is "
-                             f"only for kind 'wpimult', not '{self.kind}'")
+                             f"only for kind 'wpimult' (or hmflow's 'recomplete'), not "
+                             f"'{self.kind}'")
+        if (self.direction is None) != (self.kind != "trend") or (
+                self.kind == "trend" and (self.box is not None or self.region is not None)):
+            raise ValueError(f"parameter '{self.name}': a direction is for kind 'trend' only, "
+                             "and a trend needs one (it spans the whole grid: no box or region)")
+        if self.kind == "recomplete" and (len(self.wells) != 1 or not self.layers
+                                          or self.start_day is None or self.low <= 0):
+            raise ValueError(f"parameter '{self.name}' of kind 'recomplete' needs one well, the "
+                             "layers it is recompleted in, a start_day and low > 0")
         if self.box is not None:
             i1, i2, j1, j2, k1, k2 = self.box
             if not (1 <= i1 <= i2 and 1 <= j1 <= j2 and 1 <= k1 <= k2):

@@ -12,6 +12,9 @@ file that must change) with
   one (``start_day``) in the schedule at the first report step at or after its day (a DATES or
   TSTEP keyword is split there), then after the COMPDATs that follow;
 * COMPDAT item 11 (skin) rewritten for the targeted wells (and layers);
+* a permeability trend (kind ``trend``) as one boxed ``MULTIPLY`` record per column;
+* a recompletion (kind ``recomplete``) as a COMPDAT in the schedule at its report step (the
+  schedule's edits are in :mod:`hmcore.model.schedule_edits`);
 * every ``INCLUDE`` path made absolute (unchanged include files are not copied).
 
 Keywords are located by a small Eclipse lexer (comments, quotes, ``N*`` repeats, ``/``
@@ -21,6 +24,7 @@ terminators) restricted to the keywords OPM's parser found in the deck, never by
 from __future__ import annotations
 
 import fnmatch
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +42,14 @@ from hmcore.eclipse.lexer import (
 from hmcore.eclipse.tables import width as table_width
 from hmcore.errors import CaseError, Problem
 from hmcore.model.parameters import MULTIREG_REGIONS, Parameter, ParameterSpace
+from hmcore.model.schedule_edits import (
+    PiMultiplier,
+    Recompletion,
+    dated_steps,
+    format_compdat_record,
+    keep_connections,
+    wpimult_block,
+)
 
 _COMPDAT_SKIN_ITEM = 11
 
@@ -109,17 +121,6 @@ class FaultMultiplier:
 
 
 @dataclass(frozen=True)
-class PiMultiplier:
-    """Multiply the productivity (injectivity) index of ``wells``' connections: a ``WPIMULT``
-    record after every COMPDAT that (re)defines their connections; from ``start_day`` on when
-    given (written at that report step, then after the COMPDATs that follow it)."""
-
-    wells: tuple[str, ...]
-    factor: float
-    start_day: float | None = None
-
-
-@dataclass(frozen=True)
 class TableTransform:
     """Scale (``mode="scale"``, capped at 1), reshape (``mode="power"``), move the critical
     saturation of (``mode="endpoint"``) or multiply (``mode="multiply"``, a fluid table)
@@ -132,7 +133,7 @@ class TableTransform:
 
 
 Edit = (Multiply | SetSkin | ItemMultiply | TableTransform | FaultMultiplier
-        | RegionTransmissibility | PiMultiplier)
+        | RegionTransmissibility | PiMultiplier | Recompletion)
 GRID_END = (Multiply, FaultMultiplier, RegionTransmissibility)  # written at the end of GRID
 
 
@@ -166,15 +167,31 @@ def _parameter_edits(p: Parameter, value: float, info: DeckInfo) -> list[Edit]:
         return [PiMultiplier(tuple(p.wells or info.producers), value, p.start_day)]
     if p.kind == "latent":  # the fields it makes are the run's (LatentSimulator), not the deck's
         return []
+    if p.kind == "trend":
+        nz = info.dims[2]
+        return [Multiply(k.upper(), f, (i, i, j, j, 1, nz)) for k in p.keywords
+                for (i, j), f in trend_factors(info.dims, float(p.direction), value).items()]
+    if p.kind == "recomplete":
+        return [Recompletion(p.wells[0], tuple(p.layers), value, float(p.start_day))]
     wells = p.wells or tuple(info.producers)
     return [SetSkin(tuple(wells), value, p.layers)]
 
 
+def trend_factors(dims: tuple[int, int, int], direction: float,
+                  value: float) -> dict[tuple[int, int], float]:
+    """The factor of each column (i, j), 1-based, of a trend across the grid ``dims``:
+    ``value ** s``, where s is the column's position along the horizontal ``direction``
+    (degrees from +i towards +j) from the grid's centre, -1 at the farthest column behind it
+    and 1 at the farthest ahead: x1/value at one edge to x value at the other, linear in log."""
+    nx, ny = dims[0], dims[1]
+    c, s = math.cos(math.radians(direction)), math.sin(math.radians(direction))
+    along = {(i, j): (i - (nx + 1) / 2) * c + (j - (ny + 1) / 2) * s
+             for i in range(1, nx + 1) for j in range(1, ny + 1)}
+    reach = max(max(abs(u) for u in along.values()), 1e-12)
+    return {ij: value ** (u / reach) for ij, u in along.items()}
+
+
 # ----------------------------------------------------------------------------- rendering
-def _format_compdat_record(tokens: list[str]) -> str:
-    return " " + " ".join(tokens) + " /\n"
-
-
 def _rewrite_compdat(block: Block, skins: list[SetSkin], file: Path) -> Block:
     """COMPDAT with item 11 replaced for targeted connections; untouched records kept as text."""
     new_lines = [block.lines[0], "-- records rewritten by hmflow (skin, item 11)\n"]
@@ -191,7 +208,7 @@ def _rewrite_compdat(block: Block, skins: list[SetSkin], file: Path) -> Block:
                                          "which hmflow cannot split per well",
                                          "list each well's connections explicitly")])
         for p in pieces:
-            new_lines.append(_format_compdat_record(p))
+            new_lines.append(format_compdat_record(p))
     new_lines.append("/\n\n")
     return Block("COMPDAT", new_lines)
 
@@ -235,7 +252,7 @@ def _rewrite_items(block: Block, edits: list[ItemMultiply], file: Path) -> Block
                                          f"record {' '.join(rec)}; hmflow cannot multiply a default",
                                          f"write the value of item {e.item} explicitly")])
             items[e.item - 1] = f"{float(items[e.item - 1]) * e.factor:.10g}"
-        new_lines.append(_format_compdat_record(items))
+        new_lines.append(format_compdat_record(items))
     new_lines.append("/\n\n")
     return Block(block.keyword, new_lines)
 
@@ -367,14 +384,16 @@ def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[
                 out.append("\n")
             else:
                 out.append(f"INCLUDE\n  '{path}' /\n\n")
-        elif block.keyword == "COMPDAT" and (skins or state["pimults"]):
-            out.extend(_rewrite_compdat(block, skins, file).lines if skins else block.lines)
+        elif block.keyword == "COMPDAT" and (skins or state["pimults"] or state["moves"]):
+            written = _rewrite_compdat(block, skins, file) if skins else block
+            out.extend(written.lines)
             active = [m for m in state["pimults"] if m.start_day is None or m in state["dated"]]
-            out.append(_wpimult_block(block, active, state["pi_applied"]))
+            out.append(wpimult_block(block, active, state["pi_applied"]))
             state["completed"].update(r[0].strip("'\"") for r in records(block.body) if r)
+            keep_connections(written, file, state)
         elif (block.keyword in ("DATES", "TSTEP") and state["section"] == "SCHEDULE"
-              and any(m.start_day is not None for m in state["pimults"])):
-            out.append(_dated_steps(block, info, state))
+              and (any(m.start_day is not None for m in state["pimults"]) or state["moves"])):
+            out.append(dated_steps(block, info, state))
         elif any(e.keyword == block.keyword for e in items):
             out.extend(_rewrite_items(block, [e for e in items if e.keyword == block.keyword],
                                       file).lines)
@@ -388,86 +407,6 @@ def _render_file(file: Path, info: DeckInfo, mults: list[Multiply], skins: list[
     return "".join(out)
 
 
-def _wpimult_block(compdat: Block, pimults: list[PiMultiplier], applied: set) -> str:
-    """WPIMULT for the connections this COMPDAT block defines for the targeted wells: one
-    record per connection (well, I, J, K), so a connection defined once gets the factor once,
-    whatever other COMPDAT keywords the well has (a whole-well WPIMULT after each would
-    compound on the connections defined before). ``applied`` collects the wells reached."""
-    lines = []
-    for rec in records(compdat.body):
-        items = expand_repeats(rec)
-        if not items:
-            continue
-        name = items[0].strip("'\"")
-        coords = [_int_or_none(x) for x in items[1:5]] + [None] * (4 - len(items[1:5]))
-        i, j, k1, k2 = coords
-        for m in pimults:
-            for well in m.wells:
-                if not fnmatch.fnmatchcase(well, name):
-                    continue
-                applied.add(well)
-                if k1 is None:
-                    lines.append(f" '{well}' {m.factor:.10g} /\n")
-                    continue
-                ij = f"{i if i else '1*'} {j if j else '1*'}"
-                lines += [f" '{well}' {m.factor:.10g} {ij} {k} /\n"
-                          for k in range(k1, (k2 or k1) + 1)]
-    return ("\n-- productivity multipliers added by hmflow (one record per connection)\n"
-            "WPIMULT\n" + "".join(lines) + "/\n\n") if lines else ""
-
-
-def _dated_steps(block: Block, info: DeckInfo, state: dict) -> str:
-    """A DATES or TSTEP block, counted in report steps (``state["step"]``), split after the
-    step that reaches a pending dated productivity multiplier's day, with its WPIMULT there:
-    one whole-well record per well completed so far (its connections defined so far, once; a
-    well completed later gets the factor after its COMPDAT)."""
-    if block.keyword == "DATES":
-        units = [" " + " ".join(expand_repeats(r)) + " /\n" for r in records(block.body)]
-    else:
-        units = [x for r in records(block.body) for x in expand_repeats(r)]
-    pieces: list[str] = []
-    current: list[str] = []
-
-    def flush() -> None:
-        if current:
-            body = ("".join(current) if block.keyword == "DATES"
-                    else " " + " ".join(current) + " /\n")
-            pieces.append(f"{block.keyword}\n{body}" + ("/\n\n" if block.keyword == "DATES"
-                                                         else "\n"))
-            current.clear()
-
-    for unit in units:
-        current.append(unit)
-        state["step"] += 1
-        day = info.report_days[min(state["step"], len(info.report_days) - 1)]
-        due = [m for m in state["pimults"] if m.start_day is not None
-               and m not in state["dated"] and day >= m.start_day - 1e-6]
-        if due:
-            flush()
-            lines = []
-            for m in due:
-                state["dated"].append(m)
-                for well in m.wells:
-                    if any(fnmatch.fnmatchcase(well, name) for name in state["completed"]):
-                        state["pi_applied"].add(well)
-                        lines.append(f" '{well}' {m.factor:.10g} /\n")
-            if lines:
-                pieces.append(f"-- productivity multipliers from day {day:g} added by hmflow\n"
-                              "WPIMULT\n" + "".join(lines) + "/\n\n")
-    if len(pieces) == 0:
-        return "".join(block.lines)
-    flush()
-    return "".join(pieces)
-
-
-def _int_or_none(token: str) -> int | None:
-    try:
-        value = int(float(token))
-    except ValueError:  # '1*' defaults, quoted text
-        return None
-    return value if value > 0 else None
-
-
 def _needs_inlining(path: Path, info: DeckInfo, skins: list[SetSkin], state: dict) -> bool:
     """Inline an include only if it holds something to edit (COMPDAT, or the GRID end)."""
     if path.suffix.upper() in {".GRDECL", ".GEO", ".PRP", ".INC"} and path.stat().st_size > 2**20:
@@ -475,9 +414,10 @@ def _needs_inlining(path: Path, info: DeckInfo, skins: list[SetSkin], state: dic
     text = path.read_text(errors="replace")
     names = {b.keyword for b in split_blocks(text, info.keyword_names)}
     touched = {e.keyword for e in state["items"] + state["tables"]}
-    if any(m.start_day is not None for m in state["pimults"]):
+    if any(m.start_day is not None for m in state["pimults"]) or state["moves"]:
         touched |= {"DATES", "TSTEP"}
-    return bool(((skins or state["pimults"]) and "COMPDAT" in names) or (names & touched)
+    return bool(((skins or state["pimults"] or state["moves"]) and "COMPDAT" in names)
+                or (names & touched)
                 or (state["section"] == "GRID" and names & set(SECTIONS)))
 
 
@@ -489,11 +429,16 @@ def render_deck(info: DeckInfo, edits: list[Edit]) -> str:
              "items": [e for e in edits if isinstance(e, ItemMultiply)],
              "tables": [e for e in edits if isinstance(e, TableTransform)],
              "pimults": [e for e in edits if isinstance(e, PiMultiplier)], "pi_applied": set(),
-             "step": 0, "dated": [], "completed": set()}
+             "step": 0, "dated": [], "completed": set(), "connections": [], "moved": [],
+             "moves": [e for e in edits if isinstance(e, Recompletion)]}
     text = _render_file(info.path, info, mults, skins, state)
     late = [m for m in state["pimults"] if m.start_day is not None and m not in state["dated"]]
+    late += [m for m in state["moves"] if m not in state["moved"]]
     if late:
-        raise CaseError([Problem(str(info.path), f"the productivity multiplier of {list(late[0].wells)}"
+        what = ("productivity multiplier" if isinstance(late[0], PiMultiplier) else
+                "recompletion")
+        wells = list(getattr(late[0], "wells", ())) or [getattr(late[0], "well", "")]
+        raise CaseError([Problem(str(info.path), f"the {what} of {wells}"
                                  f" starts at day {late[0].start_day:g}, after the schedule's "
                                  f"last report step (day {info.end_days:g})",
                                  f"give a start_day up to {info.end_days:g}")])

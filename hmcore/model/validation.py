@@ -88,7 +88,8 @@ def simulator_problems(backend: str, key: str) -> list[Problem]:
 def deck_reference_problems(params, info: DeckInfo, where: str) -> list[Problem]:
     """What each parameter names exists in the deck: its wells, region keyword and numbers,
     faults, layers, box and GRID keywords. A ``latent`` parameter is hmflow's own and names
-    nothing; one given in a case file (``where``) is refused."""
+    nothing; one given in a case file (``where``) is refused, and so is a ``trend`` or a
+    ``recomplete`` (a hidden truth's edit, not a calibration parameter)."""
     problems = []
     nx, ny, nz = info.dims
     for p in params:
@@ -97,6 +98,13 @@ def deck_reference_problems(params, info: DeckInfo, where: str) -> list[Problem]
                 problems.append(Problem(f"{where} '{p.name}'", "kind 'latent' is hmflow's own: "
                                         "the coefficient of a mode of the fields' prior",
                                         "give the case a [latent] section, which makes them"))
+            continue
+        if p.kind in (ParameterKind.TREND, ParameterKind.RECOMPLETE) and \
+                where.endswith("[[parameters]]"):
+            problems.append(Problem(f"{where} '{p.name}'", f"kind '{p.kind.value}' is hmflow's "
+                                    "own: the edit of a hidden truth (hmcore.scenarios.generators)",
+                                    "use kind 'multiply' (in a box) or 'wpimult' (with a "
+                                    "start_day)"))
             continue
         unknown = [w for w in p.wells if w not in info.wells]
         if unknown:

@@ -65,7 +65,9 @@ class HiddenEffect:
                 "generated": self.candidate.details.get("generated"),
                 "expect_wells": self.candidate.details.get("expect_wells") or [],
                 "expect_ids": self.candidate.details.get("expect_ids") or [],
-                "start_day": self.candidate.details.get("start_day")}
+                "start_day": self.candidate.details.get("start_day"),
+                **({"expect_kinds": self.candidate.details["expect_kinds"]}
+                   if self.candidate.details.get("expect_kinds") else {})}
 
     @property
     def generated(self) -> str | None:
@@ -100,6 +102,8 @@ def _effect_of(e: dict) -> HiddenEffect:
                "expect_ids": e.get("expect_ids") or []} if e.get("generated") else {}
     if e.get("start_day") is not None:
         details["start_day"] = float(e["start_day"])
+    if e.get("expect_kinds"):
+        details["expect_kinds"] = list(e["expect_kinds"])
     c = Candidate(id=e["id"], kind=e["kind"], parameter=Parameter.model_validate(e["parameter"]),
                   wells=tuple(e.get("wells", ())), layers=tuple(e.get("layers", ())),
                   description=e.get("description", ""), details=details)

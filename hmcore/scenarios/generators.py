@@ -38,13 +38,24 @@ generator            the truth hides                                        a ri
 ``late_productivity`` the same from 77-85 % of the schedule on: after a      the same, named on
                      fitted window of 75 % of the record, so only a         a later window
                      later window holds it
+``permeability_trend`` PERMX and PERMY x1/f at one edge of the grid to x f   ``unexplained``
+                     at the other (f 2-4), log-linear along a horizontal    (or none, when
+                     direction drawn uniformly: no family makes a smooth    invisible)
+                     field-wide gradient
+``completion_change`` one producer recompleted from a report date in 30-60 % ``unexplained``, or
+                     of the schedule on: its connections shut, 1 to as      the productivity-
+                     many new ones opened in the layers just above or       change family at
+                     below them, in the initial oil column (a workover      that well, its start
+                     in other layers)                                       within 92 days
 ==================== ===================================================== ==================
 
 Each effect is a :class:`hmcore.scenarios.effects.HiddenEffect` whose candidate's ``kind`` is the
 family a right answer names (``unexplained`` for no family) and whose ``details`` say which
 generator made it and what a right answer must also name (``expect_wells``; ``expect_ids``:
 the candidates that count, where the family has several that would not; a region: a box that
-mostly coincides with the truth's, :func:`hmcore.scenarios.hidden.boxes_agree`). Strengths are
+mostly coincides with the truth's, :func:`hmcore.scenarios.hidden.boxes_agree`;
+``expect_kinds``: another family whose cause names the effect too, with those wells and the
+start date, :func:`hmcore.scenarios.judge.names`). Strengths are
 drawn from the fixed ranges above, not scaled to each deck's noise: most draws show a few times
 above it, some do not (an end point the globals absorb, a small box far from the wells). Each
 draw's signal is measured when its case is written (:func:`hmcore.scenarios.hidden.effect_signal`)
@@ -56,6 +67,7 @@ nothing here simulates; :func:`hmcore.scenarios.hidden.write_hidden_synthetic_ca
 from __future__ import annotations
 
 import math
+from itertools import takewhile
 
 import numpy as np
 
@@ -72,12 +84,17 @@ from hmcore.diagnosis.extensions import (
     wells_below,
 )
 from hmcore.eclipse.deck_info import DeckInfo
+from hmcore.model.deck_values import deck_blocks
 from hmcore.model.parameters import Parameter, ParameterSpace
+from hmcore.model.run_deck import trend_factors
 from hmcore.ordering import natural_key
 from hmcore.scenarios.effects import HiddenEffect, draw_library_effect
 
 GENERATORS = ("partial_fault", "offcentre_region", "relperm_endpoint", "two_kinds", "contact",
-              "dated_productivity", "late_productivity", "pvt", "relperm_scaling")
+              "dated_productivity", "late_productivity", "pvt", "relperm_scaling",
+              "permeability_trend", "completion_change")
+"""The generators. Each one's rng is seeded with its index here, so a new one goes at the end:
+every other one then draws what it drew before."""
 START_TOLERANCE_DAYS = 92.0
 """A dated cause names a dated effect when its start is this close (about a quarter)."""
 TWO_KINDS_FROM = ("well_skin", "regional_permeability", "layer_permeability",
@@ -124,7 +141,9 @@ def generate(name: str, seed: int, info: DeckInfo, space: ParameterSpace,
                 "relperm_scaling": lambda r, i, s: _relperm_scaling(r, i, s, seed),
                 "contact": _contact, "pvt": _pvt,
                 "dated_productivity": _dated_productivity,
-                "late_productivity": _late_productivity}[name](rng, info, space)
+                "late_productivity": _late_productivity,
+                "permeability_trend": _permeability_trend,
+                "completion_change": _completion_change}[name](rng, info, space)
     return [HiddenEffect(c, value)]
 
 
@@ -326,3 +345,111 @@ def _late_productivity(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Cand
     fits, only in the held-back part: found only by a diagnosis that takes the longer record
     (its later window)."""
     return _dated_productivity(rng, info, space, (0.77, 0.85), "late_productivity")
+
+
+TREND_FACTOR = (2.0, 4.0)
+"""The range of a permeability trend's f (log-uniform): x1/f at one edge of the grid, x f at
+the other, so the field's two ends differ 4-16 times."""
+
+
+def _permeability_trend(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
+    """PERMX and PERMY multiplied by a factor that rises log-linearly across the whole grid
+    along a horizontal direction drawn uniformly (:func:`hmcore.model.run_deck.trend_factors`),
+    from x1/f at the farthest column behind to x f at the farthest ahead (f in
+    :data:`TREND_FACTOR`): a facies or compaction trend the model's permeability lacks. No
+    family makes it: the regional family changes a box and the layer family a whole layer,
+    each by one factor, and the globals multiply the field uniformly (the trend's geometric mean
+    over the grid's columns is 1, so they absorb little of it). A right answer is
+    ``unexplained``; a box at a well on the trend's high or low side can mimic part of it,
+    and is wrong: it says the rest of the field is as modelled."""
+    angle = float(rng.uniform(0.0, 360.0))
+    value = _log_uniform(rng, *TREND_FACTOR)
+    p = Parameter(name="hidden_perm_trend", kind="trend", keywords=("PERMX", "PERMY"),
+                  direction=angle, low=0.1, high=10.0,
+                  description=f"PERMX and PERMY trend across the grid, rising towards "
+                              f"{angle:.0f} degrees from +i (towards +j)")
+    factors = trend_factors(info.dims, angle, value)
+    at = ", ".join(f"{w} x{factors[well_column(info, w)]:.2f}"
+                   for w in sorted(info.producers, key=natural_key))
+    return _of_no_family(info, "permeability_trend", p,
+                         f"permeability_trend:{angle:.0f}deg:x{value:.3f}",
+                         f"the permeability trends across the field, x{1 / value:.2f} at one "
+                         f"edge to x{value:.2f} at the other, rising towards {angle:.0f} "
+                         f"degrees from +i ({at})"), value
+
+
+def _completion_change(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Candidate, float]:
+    """One producer recompleted mid-history, as a workover would: from a report day in 30-60 %
+    of the schedule on, every connection it has is shut and 1 to as many new ones as it had
+    are opened in the layers just above its top connection or just below its bottom one, in
+    its column (a vertical well, open in some layers only), each of them in the initial oil
+    column (:func:`_oil_layers`: no workover perforates only the gas cap or the aquifer, and a
+    well that can flow no oil is shut by the simulator, its history no longer a well's). The
+    value, the new connections' productivity multiplier, is 1: perforated as the model
+    computes connection factors, so the strength is the move itself.
+
+    A right answer is ``unexplained``, or the productivity-change family at that well starting
+    within :data:`START_TOLERANCE_DAYS` of the day (``expect_kinds``; accepted, so the held-back
+    misfit drops). Why the second is fair too: the well's productivity index does change at that
+    date (the new layers have another kh), so a dated productivity change names where and when,
+    which is what sends an engineer to the well's workover record; it cannot say what, since
+    other layers bring other water and gas (a deeper completion cones water sooner, a shallower
+    one gas), which no PI factor reproduces - so it counts only as that family, at that well
+    and date, and any other family (a skin the well always had, a region, a layer's
+    permeability) or another well or date is wrong."""
+    nz = info.dims[2]
+    oil = _oil_layers(info)
+    options = []
+    for well in sorted(info.producers, key=natural_key):
+        conns = info.wells[well].connections
+        ks = sorted({k for _, _, k in conns})
+        if len({(i, j) for i, j, _ in conns}) != 1:
+            continue  # not a vertical well: its layers are no interval to move
+        up = list(takewhile(lambda k: k in oil[well], range(ks[0] - 1, 0, -1)))[::-1]
+        down = list(takewhile(lambda k: k in oil[well], range(ks[-1] + 1, nz + 1)))
+        if up or down:
+            options.append((well, ks, [side for side in (up, down) if side]))
+    if not options:
+        raise ValueError(f"the deck {info.path} has no vertical producer with oil-bearing "
+                         "layers just above or below its connections to recomplete in")
+    end = info.end_days
+    days = [d for d in info.report_days if 0.3 * end <= d <= 0.6 * end]
+    if not days:
+        raise ValueError(f"the deck {info.path} has no report step in 30%-60% of its schedule "
+                         "to recomplete a well at")
+    well, ks, sides = options[int(rng.integers(len(options)))]
+    side = sides[int(rng.integers(len(sides)))]
+    n = int(rng.integers(1, min(len(ks), len(side)) + 1))
+    layers = tuple(side[-n:] if side[0] < ks[0] else side[:n])  # next to the old ones
+    day = float(days[int(rng.integers(len(days)))])
+    span = lambda x: f"{x[0]}-{x[-1]}" if len(x) > 1 else f"{x[0]}"  # noqa: E731
+    p = Parameter(name=f"hidden_recompletion_{well}".replace("-", "_"), kind="recomplete",
+                  wells=(well,), layers=layers, start_day=day, low=0.1, high=10.0,
+                  description=f"{well} recompleted in layer(s) {span(layers)} from day {day:g}")
+    c = Candidate(f"completion_change:{well}:k{span(ks)}>k{span(layers)}@{day:g}",
+                  "unexplained", p, (well,), layers,
+                  f"well {well} was recompleted from day {day:g} on: its connections in "
+                  f"layer(s) {span(ks)} shut, layer(s) {span(layers)} opened "
+                  f"({'shallower' if layers[0] < ks[0] else 'deeper'}): no family of the "
+                  "library moves a well's completions",
+                  details={"generated": "completion_change", "expect_wells": [well],
+                           "start_day": day, "expect_kinds": ["productivity_change"]})
+    return c, 1.0
+
+
+def _oil_layers(info: DeckInfo) -> dict[str, set[int]]:
+    """Per producer, the layers of its column whose cell centre lies in the initial oil column:
+    below the gas-oil contact and above the water-oil contact of the deck's EQUIL (items 5 and
+    3; with several records, the deepest gas-oil and the shallowest water-oil contact; a
+    defaulted one bounds nothing). The grid's cell depths are OPM's (the deck parsed again)."""
+    records = deck_blocks(info).get("EQUIL") or []
+    contact = [[float(r[k]) for r in records if len(r) > k and r[k] != "1*"] for k in (4, 2)]
+    goc = max(contact[0], default=-math.inf)
+    woc = min(contact[1], default=math.inf)
+    grid = DeckInfo.inspect_parsed(info.path)[1].state.grid()
+    out = {}
+    for well in info.producers:
+        i, j, _ = info.wells[well].connections[0]
+        out[well] = {k for k in range(1, info.dims[2] + 1)
+                     if goc < grid.getCellDepth(i - 1, j - 1, k - 1) < woc}
+    return out

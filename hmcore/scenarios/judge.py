@@ -91,9 +91,11 @@ def names(cause: dict, effect: HiddenEffect) -> bool:
     (:mod:`hmcore.scenarios.generators`), which no candidate matches exactly: its family,
     naming the wells it expects (``expect_wells``) and, where it lists them, being one of
     ``expect_ids`` (a partial fault: the library plane that parts the producers the same way),
-    or for a region, its box as above."""
+    or for a region, its box as above. An effect whose ``expect_kinds`` list another family (a
+    recompletion of no family: the productivity change) is named by a cause of that family too,
+    with the wells and the start date it expects."""
     h = effect.candidate
-    if cause["kind"] != h.kind:
+    if cause["kind"] != h.kind and cause["kind"] not in (h.details.get("expect_kinds") or ()):
         return False
     start = h.details.get("start_day")
     if start is not None:  # a dated effect: the cause's start date too
@@ -116,8 +118,9 @@ def names(cause: dict, effect: HiddenEffect) -> bool:
 def judge_effects(doc: dict, effects: list[HiddenEffect], signal: dict | None = None) -> dict:
     """Did the diagnosis ``doc`` find every hidden effect? One library effect (or none): as
     :func:`judge`. Otherwise each effect must be named (:func:`names`) by an accepted cause -
-    an effect of no family (kind ``unexplained``) by the first cause - and, unless all are of
-    no family, the held-back misfit must drop as in :func:`judge`. Returns ``found``,
+    an effect of no family (kind ``unexplained``) by the first cause, or by an accepted cause of
+    a family its ``expect_kinds`` list - and, unless all are named as of no family, the
+    held-back misfit must drop as in :func:`judge`. Returns ``found``,
     ``named`` (effect id -> bool), ``heldout_improved``, the ranking and the verdict."""
     if len(effects) <= 1 and not (effects and effects[0].generated):
         return judge(doc, effects[0] if effects else None, signal)
@@ -126,8 +129,9 @@ def judge_effects(doc: dict, effects: list[HiddenEffect], signal: dict | None = 
     # an effect of no family the data hardly show: `none` is right too
     invisible = not visible(signal)
     no_family = ("unexplained", "none") if invisible else ("unexplained",)
-    named = {e.candidate.id: (first["kind"] in no_family if e.kind == "unexplained"
-                              else any(names(described(a, doc), e) for a in accepted))
+    # (a cause names an effect of no family only through its expect_kinds)
+    named = {e.candidate.id: ((e.kind == "unexplained" and first["kind"] in no_family)
+                              or any(names(described(a, doc), e) for a in accepted))
              for e in effects}
     g = doc["gain"]
     held = g["heldout_after"] is not None and g["heldout_before"] is not None and \
@@ -137,7 +141,9 @@ def judge_effects(doc: dict, effects: list[HiddenEffect], signal: dict | None = 
             truth_e >= g["heldout_before"]:
         held = g.get("ssr_heldout_after") is not None and \
             g["ssr_heldout_after"] < g["ssr_heldout_before"]
-    need_held = any(e.kind != "unexplained" for e in effects)
+    # an accepted cause must lower the held-back misfit, also one that names an effect of no
+    # family through another family (expect_kinds) instead of `unexplained` first
+    need_held = any(e.kind != "unexplained" or first["kind"] not in no_family for e in effects)
     top = [f"{c['id']} ({c['chi2']:.0f})" for c in doc["causes"][:4] if c["chi2"] is not None]
     found = bool(all(named.values()) and (held or not need_held))
     return {**answer_outcome(doc, effects, signal, found),
@@ -219,9 +225,8 @@ def answer_outcome(doc: dict, effects: list[HiddenEffect], signal: dict | None =
 
     def named(effect: HiddenEffect, part: str) -> bool:
         cause = _member(part, doc)
-        if effect.kind == "unexplained":
-            return cause["kind"] in no_family
-        return names(described(cause, doc), effect)
+        return ((effect.kind == "unexplained" and cause["kind"] in no_family)
+                or names(described(cause, doc), effect))
 
     def holds(m: str) -> bool:  # a pair (round 2's "a+b") holds the truth when its causes do
         parts = m.split("+")

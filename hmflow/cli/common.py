@@ -98,7 +98,8 @@ KINDS_HELP = ("Families of candidate extensions to search, comma-separated (defa
 """Spelled out so that ``--help`` does not import the diagnosis; a test holds it to
 :data:`hmcore.diagnosis.extensions.KINDS`, as ``GENERATORS_HELP`` to the generators."""
 GENERATORS_HELP = ("partial_fault, offcentre_region, relperm_endpoint, relperm_scaling, "
-                   "two_kinds, contact, pvt, dated_productivity, late_productivity")
+                   "two_kinds, contact, pvt, dated_productivity, late_productivity, "
+                   "permeability_trend, completion_change")
 DEFAULT_STORAGE = Path("./hmflow-storage")
 
 

@@ -198,12 +198,19 @@ def _reveal_field(hidden: Path, storage: Path, campaign: str) -> None:
 
 def _print_effects(r) -> None:
     """Several effects (or a generated one): each hidden effect, a right answer, named or not."""
+    from hmcore.scenarios.generators import START_TOLERANCE_DAYS  # imported by the judging
+
     j, doc = r.verdict, r.diagnosis
     for e in r.effects:
         console.print(f"hidden: [bold]{e.candidate.id}[/] = {e.value:.4g} "
                       f"({e.candidate.description}); a right answer: {e.kind}"
+                      + (f", or {' or '.join(e.candidate.details['expect_kinds'])}"
+                         if e.candidate.details.get("expect_kinds") else "")
                       + (f" at {', '.join(e.candidate.details['expect_wells'])}"
                          if e.candidate.details.get("expect_wells") else "")
+                      + (f" from day {e.candidate.details['start_day']:g} (within "
+                         f"{START_TOLERANCE_DAYS:g} days)"
+                         if e.candidate.details.get("start_day") is not None else "")
                       + (" over cells i {}-{}, j {}-{} (sharing a quarter or more of "
                          "the columns the two boxes cover)".format(
                           *e.parameter.box[:4]) if e.kind == "regional_permeability"
