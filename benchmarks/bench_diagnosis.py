@@ -295,7 +295,7 @@ def into_doc(doc: Path, text: str) -> None:
 
 
 def main() -> None:
-    from hmcore.diagnosis.extensions import KINDS
+    from hmcore.diagnosis.candidate import KINDS
     from hmcore.scenarios.generators import GENERATORS
 
     ap = argparse.ArgumentParser(description=__doc__,

@@ -119,7 +119,7 @@ def test_a_linked_campaign_folder_is_refused_before_prefect_starts(tmp_path):
 def test_the_help_lists_every_kind_and_generator():
     """``--kinds`` and ``hide --kind`` spell their choices out (so ``--help`` does not import
     the diagnosis): every family and every generator is there, and nothing else."""
-    from hmcore.diagnosis.extensions import DEFAULT_KINDS, KINDS
+    from hmcore.diagnosis.candidate import DEFAULT_KINDS, KINDS
     from hmcore.scenarios.generators import GENERATORS
     from hmflow.cli.common import GENERATORS_HELP, KINDS_HELP
 

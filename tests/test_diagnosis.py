@@ -239,13 +239,8 @@ def punq_info():
 @needs_punq
 def test_extension_library_for_punq(punq_info, tmp_path):
     from hmcore.model.run_deck import prepare_run_deck
-    from hmcore.diagnosis.extensions import (
-        DEFAULT_KINDS,
-        KINDS,
-        build_candidates,
-        dated_productivity,
-        extended_space,
-    )
+    from hmcore.diagnosis.candidate import DEFAULT_KINDS, KINDS, extended_space
+    from hmcore.diagnosis.extensions import build_candidates, dated_productivity
 
     space = ParameterSpace.reference()
     cands = build_candidates(punq_info, space, {"skin": 5.0})
@@ -318,7 +313,9 @@ def test_extension_library_for_the_synthetic_deck(tmp_path):
     # a critical saturation moves down only as far as the table's first row: the synthetic
     # SWOF starts at its critical saturation (no room), its SGOF 0.05 above its first row;
     # that end is a limit, not an open end
-    from hmcore.diagnosis.extensions import base_values, critical_room, open_end
+    from hmcore.diagnosis.candidate import open_end
+    from hmcore.diagnosis.extensions import critical_room
+    from hmcore.model.deck_values import base_values
 
     by = {c.id: c for c in cands}
     water, gas = (by[f"relative_permeability:{ph}:endpoint"] for ph in ("water", "gas"))
@@ -539,7 +536,8 @@ def test_a_region_beside_a_well_is_named_by_a_moved_box(tmp_path):
     and score beyond noise, so the ranking tries them moved beside their wells, and the moved
     box that is the truth's is named - not a centred one, not a skin."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
-    from hmcore.diagnosis.extensions import shifted_regions, well_column
+    from hmcore.diagnosis.candidate import well_column
+    from hmcore.diagnosis.extensions import shifted_regions
     from hmcore.scenarios.hidden import synthetic_deck_info
 
     info = synthetic_deck_info(0, tmp_path / "d")
@@ -613,7 +611,8 @@ def test_a_cause_that_stops_at_an_open_end_of_its_range_is_flagged(tmp_path):
     physical limit (a sealed fault, a vertical barrier) are not open: a fit there is a
     complete effect, with no warning."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
-    from hmcore.diagnosis.extensions import build_candidates, open_end
+    from hmcore.diagnosis.candidate import open_end
+    from hmcore.diagnosis.extensions import build_candidates
     from hmcore.scenarios.hidden import synthetic_deck_info
     from hmcore.diagnosis.report import markdown_report
 
@@ -1098,7 +1097,7 @@ def test_judge_counts_the_whitened_held_back_misfit_only_where_the_truth_cannot_
     """A found effect must lower the held-back E - unless the truth itself scores no better
     held-back E than the calibrated base (the noise decides E there: PUNQ-S3, aquifer 2 x9.2,
     truth 0.00876 against the base's 0.00789); then the whitened held-back SSR must drop."""
-    from hmcore.diagnosis.extensions import Candidate
+    from hmcore.diagnosis.candidate import Candidate
     from hmcore.scenarios.effects import HiddenEffect
     from hmcore.scenarios.judge import judge
 
@@ -1233,7 +1232,7 @@ def test_a_cause_explaining_a_minority_of_the_misfit_leads_with_unexplained(
     if leads:  # the judge of one library effect reads a partial answer as judge_effects does
         from hmcore.scenarios.effects import HiddenEffect
         from hmcore.scenarios.judge import judge
-        from hmcore.diagnosis.extensions import Candidate
+        from hmcore.diagnosis.candidate import Candidate
 
         skin = Candidate("well_skin:PROD3", "well_skin",
                          Parameter(name="skin_PROD3", kind="skin", wells=("PROD3",), low=-5,
@@ -1287,7 +1286,8 @@ def test_a_late_effect_behind_a_vetoed_cause_is_found_on_a_later_window(tmp_path
     fitted to a later origin it names both, each with its gain, and says which window did
     (issue 18, points 1 and 2)."""
     from hmcore.diagnosis import DiagnosisSettings, diagnose
-    from hmcore.diagnosis.extensions import KINDS, build_candidates
+    from hmcore.diagnosis.candidate import KINDS
+    from hmcore.diagnosis.extensions import build_candidates
     from hmcore.scenarios.hidden import synthetic_deck_info
 
     cands = {c.id: c for c in build_candidates(synthetic_deck_info(0, tmp_path / "d"),

@@ -31,7 +31,8 @@ def synthetic(tmp_path_factory):
 
 @pytest.mark.parametrize("seed", range(6))
 def test_generated_effects_lie_beyond_the_library(synthetic, seed):
-    from hmcore.diagnosis.extensions import build_candidates, shifted_regions, well_column
+    from hmcore.diagnosis.candidate import well_column
+    from hmcore.diagnosis.extensions import build_candidates, shifted_regions
     from hmcore.scenarios.generators import generate
 
     info, truth = synthetic
@@ -472,7 +473,8 @@ def test_the_contact_and_solution_gas_families_move_the_deck_s_equil_and_rsvd(sm
     """The two families searched when asked for (``kinds``; not by default): their candidates
     on the synthetic deck, and the deck a run of them writes."""
     from hmcore.cases import load_case
-    from hmcore.diagnosis.extensions import DEFAULT_KINDS, build_candidates, extended_space
+    from hmcore.diagnosis.candidate import DEFAULT_KINDS, extended_space
+    from hmcore.diagnosis.extensions import build_candidates
     from hmcore.eclipse.lexer import records, split_blocks
     from hmcore.model.run_deck import prepare_run_deck
 
@@ -540,7 +542,7 @@ def test_a_permeability_trend_is_in_the_truth_deck_and_moves_every_well(small_ba
     """The trend's MULTIPLY records, one per column and keyword, carry its factors; in one run
     every producer's BHP moves the way its column's factor says (less permeable: more
     drawdown at the same oil rate)."""
-    from hmcore.diagnosis.extensions import well_column
+    from hmcore.diagnosis.candidate import well_column
     from hmcore.eclipse.lexer import records, split_blocks
     from hmcore.model.run_deck import trend_factors
     from hmcore.scenarios.generators import generate

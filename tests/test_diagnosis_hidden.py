@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from hmcore.diagnosis.extensions import KINDS
+from hmcore.diagnosis.candidate import KINDS
 
 PUNQ = Path(__file__).resolve().parents[2] / "shared" / "punqs3"
 pytestmark = [pytest.mark.opm]

@@ -14,7 +14,8 @@ import pytest
 
 from hmcore.diagnosis.answer import section
 from hmcore.diagnosis.evidence import Fit
-from hmcore.diagnosis.extensions import build_candidates, extended_space
+from hmcore.diagnosis.candidate import extended_space
+from hmcore.diagnosis.extensions import build_candidates
 from hmcore.diagnosis.runs import Simulations, local_evaluator
 from hmcore.diagnosis.separation import LINE, MEASURED
 from hmcore.scenarios.synthetic import SYNTHETIC_TRUTH

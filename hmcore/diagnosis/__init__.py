@@ -3,8 +3,9 @@ attribution by a score test, warm-started recalibration and the measured gain.
 
 One job per module. The knobs: :mod:`~hmcore.diagnosis.settings` (``DiagnosisSettings``,
 ``--kinds``), :mod:`~hmcore.diagnosis.budget` (the minimum of simulator calls). The pieces:
-:mod:`~hmcore.diagnosis.residuals` (residual analysis), :mod:`~hmcore.diagnosis.extensions`
-(the candidate library), :mod:`~hmcore.diagnosis.attribution` (the score test),
+:mod:`~hmcore.diagnosis.residuals` (residual analysis), :mod:`~hmcore.diagnosis.candidate`
+(a candidate as data, the families' names and ranges), :mod:`~hmcore.diagnosis.extensions`
+(the families that build candidates), :mod:`~hmcore.diagnosis.attribution` (the score test),
 :mod:`~hmcore.diagnosis.screening` (the ranking's runs and scores),
 :mod:`~hmcore.diagnosis.dating` (start dates), :mod:`~hmcore.diagnosis.recalibrate` (bounded
 Levenberg-Marquardt), :mod:`~hmcore.diagnosis.refit` (start points and restarts: numerics),
@@ -23,7 +24,8 @@ Free of Prefect: the simulator is reached only through an injected ``evaluate_ba
 """
 
 from hmcore.diagnosis.attribution import Score, projector_basis, score_test
-from hmcore.diagnosis.extensions import KINDS, Candidate, build_candidates, extended_space
+from hmcore.diagnosis.candidate import KINDS, Candidate, extended_space
+from hmcore.diagnosis.extensions import build_candidates
 from hmcore.diagnosis.recalibrate import Coordinates, LevenbergMarquardt, LMSettings, run_lockstep
 from hmcore.scoring.observations import ObservationSet
 from hmcore.diagnosis.residuals import analyse_residuals

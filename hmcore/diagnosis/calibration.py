@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from hmcore.diagnosis.budget import budget_problem, ranking_reserve
-from hmcore.diagnosis.extensions import base_values
+from hmcore.model.deck_values import base_values
 from hmcore.diagnosis.recalibrate import LevenbergMarquardt, LMSettings, Point, run_lockstep
 from hmcore.diagnosis.runs import Run, rescore, run_scores
 from hmcore.diagnosis.state import Calibrated, Context

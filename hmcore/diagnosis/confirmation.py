@@ -21,7 +21,7 @@ import dataclasses
 import math
 
 from hmcore.diagnosis.evidence import jtj_eigenvalues
-from hmcore.diagnosis.extensions import Candidate, open_end
+from hmcore.diagnosis.candidate import Candidate, open_end
 from hmcore.diagnosis.recalibrate import LevenbergMarquardt
 from hmcore.diagnosis.runs import Run, heldout_per_well, run_scores
 from hmcore.diagnosis.settings import DiagnosisSettings

@@ -16,7 +16,7 @@ from hmcore.diagnosis.attribution import Score
 from hmcore.diagnosis.confirmation import fit_line, heldout_noise_line
 from hmcore.diagnosis.confirmation import heldout_decisive_drop  # noqa: F401  (re-exported:
 # hmcore.scenarios.judge imports it from here)
-from hmcore.diagnosis.extensions import Candidate
+from hmcore.diagnosis.candidate import Candidate
 from hmcore.diagnosis.settings import DiagnosisSettings
 from hmcore.ordering import natural_key
 

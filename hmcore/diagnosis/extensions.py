@@ -1,6 +1,6 @@
 """The library of model extensions: declared parameter families, each producing candidates.
 
-A :class:`Candidate` is one physical hypothesis ("PROD3's completion is more damaged than the
+A :class:`~hmcore.diagnosis.candidate.Candidate` is one physical hypothesis ("PROD3's completion is more damaged than the
 others", "a sealing fault between the west and east wells") represented by one new
 :class:`~hmcore.model.parameters.Parameter` of an existing kind, with
 
@@ -41,134 +41,40 @@ Families (see :func:`build_candidates`):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from datetime import timedelta
 
 import numpy as np
 
 from hmcore.eclipse.deck_info import DeckInfo
 from hmcore.eclipse.tables import width
-from hmcore.diagnosis.recalibrate import Coordinates
-from hmcore.model.deck_values import base_values, deck_blocks, deck_skins  # noqa: F401
+from hmcore.diagnosis.candidate import (
+    AQUIFER_BOUNDS,
+    CONTACT_BOUNDS,
+    DEFAULT_KINDS,
+    FAULT_BOUNDS,
+    KINDS,
+    PERM_BOUNDS,
+    PERMZ_BOUNDS,
+    PI_BOUNDS,
+    PROBE,
+    REGION_HALF_WIDTH,
+    RELPERM_BOUNDS,
+    RELPERM_ENDPOINT_BOUNDS,
+    RELPERM_ENDPOINT_PROBE,
+    RELPERM_SCALE_BOUNDS,
+    RELPERM_SCALE_PROBE,
+    SOLUTION_GAS_BOUNDS,
+    WELL_SKIN_BOUNDS,
+    Candidate,
+    current_skin,
+    slug,
+    well_column,
+    wells_below,
+)
+from hmcore.model.deck_values import deck_blocks
 from hmcore.model.parameters import Parameter, ParameterSpace
 from hmcore.model.run_deck import critical_saturation
 from hmcore.ordering import natural_key
-
-KINDS = ("well_skin", "regional_permeability", "layer_permeability", "vertical_permeability",
-         "aquifer_strength", "fault_transmissibility", "relative_permeability",
-         "productivity_change", "contact_depth", "solution_gas")
-"""The families (appended only: a kind's index seeds its hidden effects' draws)."""
-DEFAULT_KINDS = KINDS[:8]
-"""The families a diagnosis searches unless told (``kinds``): all but ``contact_depth`` and
-``solution_gas``, which are searched when asked for until a sweep has measured what they do
-to the answers (why: docs/diagnosis.md, the extension kinds)."""
-
-REGION_HALF_WIDTH = 3
-"""Half width (cells) of the box of a regional permeability candidate."""
-PERM_BOUNDS = (0.1, 10.0)
-PERMZ_BOUNDS = (0.01, 100.0)
-AQUIFER_BOUNDS = (0.05, 20.0)
-FAULT_BOUNDS = (1e-4, 1.0)
-RELPERM_BOUNDS = (0.4, 3.0)
-RELPERM_SCALE_BOUNDS = (0.2, 5.0)
-RELPERM_SCALE_PROBE = 0.6
-"""Probe of a relative-permeability factor: down, since a factor up is capped at 1."""
-RELPERM_ENDPOINT_BOUNDS = (-0.2, 0.2)
-RELPERM_ENDPOINT_PROBE = 0.05
-"""Probe of a critical-saturation shift (saturation units): up, since a table that starts at
-its critical saturation has no room below it."""
-WELL_SKIN_BOUNDS = (-5.0, 30.0)
-PI_BOUNDS = (0.05, 20.0)
-CONTACT_BOUNDS = (0.98, 1.02)
-"""Factor on a contact's depth: +-2 %, some 50 m at 2,500 m, more than a reservoir's oil
-column is often thick."""
-SOLUTION_GAS_BOUNDS = (0.5, 1.0)
-"""Factor on the initial Rs (or bubble point): at most the deck's, since oil at a gas cap is
-saturated, and more gas than saturated oil holds is no initial state (the high end is a
-physical limit, :data:`LIMIT_ENDS`)."""
-LIMIT_ENDS = {"fault_transmissibility": ("low", "high"), "vertical_permeability": ("low",),
-              "aquifer_strength": ("low",), "solution_gas": ("high",)}
-"""The ends of a family's range that are a physical limit - a sealed fault (and no fault), a
-layer that is a vertical barrier, next to no aquifer: a fit there is a complete effect. At any
-other end (:func:`open_end`) the data ask the family for more than its range holds."""
-PROBE = {"well_skin": 6.0, "regional_permeability": 0.4, "layer_permeability": 0.4,
-         "vertical_permeability": 0.1, "aquifer_strength": 0.3,
-         "fault_transmissibility": 0.01, "relative_permeability": 1.6,
-         "productivity_change": 0.5, "contact_depth": 1.005, "solution_gas": 0.9}
-"""Finite-difference probe: skin increment, or factor (multipliers), or exponent."""
-
-
-@dataclass(frozen=True)
-class Candidate:
-    """One model extension: a new parameter, what it means and where it acts."""
-
-    id: str
-    kind: str
-    parameter: Parameter
-    wells: tuple[str, ...] = ()
-    layers: tuple[int, ...] = ()
-    description: str = ""
-    neutral: float = 1.0
-    probe: float = 1.0
-    details: dict = field(default_factory=dict)
-
-    @property
-    def name(self) -> str:
-        return self.parameter.name
-
-    def machine(self) -> dict:
-        """The extension as data: kind, wells, layers and the parameter definition."""
-        return {"id": self.id, "kind": self.kind, "wells": list(self.wells),
-                "layers": list(self.layers), "neutral": self.neutral, "probe": self.probe,
-                "parameter": self.parameter.model_dump(mode="json"), **self.details}
-
-
-def open_end(c: Candidate, value: float, near: float) -> str | None:
-    """``"low"`` or ``"high"`` when ``value`` lies within ``near`` (scaled distance, the
-    recalibration's coordinates: log scale for multipliers) of that end of ``c``'s range and
-    that end is not a physical limit of the family (:data:`LIMIT_ENDS`); else None.
-
-    A recalibrated candidate that stops there fits the data only as far as its range lets it:
-    it stands in for an effect it does not describe - or for a larger effect of its own kind,
-    beyond the range a user would call plausible (examples: docs/diagnosis.md, "A cause at the
-    end of its range is flagged")."""
-    if near < 0:
-        return None
-    (u,) = Coordinates([c.parameter]).to_u({c.name: value})
-    end = "high" if u >= 1.0 - near else "low" if u <= -1.0 + near else None
-    if end == "low" and c.details.get("low_is_limit"):  # e.g. a table's first row
-        return None
-    return None if end is None or end in LIMIT_ENDS.get(c.kind, ()) else end
-
-
-# ----------------------------------------------------------------------------- deck facts
-def current_skin(well: str, space: ParameterSpace, values: dict[str, float],
-                 info: DeckInfo) -> float:
-    """The skin ``well`` has in the model with ``values`` (the last skin parameter touching it,
-    else the deck's)."""
-    skin = deck_skins(info).get(well, 0.0)
-    for p in space.parameters:
-        if p.kind == "skin" and p.name in values and not p.layers:
-            targets = p.wells or tuple(info.producers)
-            if well in targets:
-                skin = float(values[p.name])
-    return skin
-
-
-def well_column(info: DeckInfo, well: str) -> tuple[int, int]:
-    """(i, j) of a well's first connection (1-based)."""
-    conns = info.wells[well].connections
-    i, j, _ = conns[0]
-    return i, j
-
-
-def wells_below(info: DeckInfo, axis: str, plane: int) -> list[str]:
-    """The producers on the low side of the plane ``plane | plane + 1`` along ``axis`` ("i" or
-    "j"), in natural order."""
-    k = 0 if axis == "i" else 1
-    return sorted((w for w in info.producers if well_column(info, w)[k] <= plane),
-                  key=natural_key)
-
 
 # ----------------------------------------------------------------------------- families
 def _has_global(space: ParameterSpace, keyword: str) -> bool:
@@ -183,7 +89,7 @@ def well_skin(info: DeckInfo, space: ParameterSpace, values: dict[str, float]) -
         lo, hi = WELL_SKIN_BOUNDS
         lo, hi = min(lo, s0 - 1.0), max(hi, s0 + 1.0)
         probe = s0 + PROBE["well_skin"] if s0 + PROBE["well_skin"] <= hi else s0 - PROBE["well_skin"]
-        p = Parameter(name=f"skin_{_slug(well)}", kind="skin", wells=(well,), low=lo, high=hi,
+        p = Parameter(name=f"skin_{slug(well)}", kind="skin", wells=(well,), low=lo, high=hi,
                       description=f"skin of well {well}")
         out.append(Candidate(f"well_skin:{well}", "well_skin", p, (well,), (),
                              f"well {well} has a different completion skin (formation damage or "
@@ -199,7 +105,7 @@ def regional_permeability(info: DeckInfo, space: ParameterSpace,
     for well in sorted(info.producers, key=natural_key):
         i, j = well_column(info, well)
         box = (max(1, i - h), min(nx, i + h), max(1, j - h), min(ny, j + h), 1, nz)
-        p = Parameter(name=f"perm_region_{_slug(well)}", kind="multiply",
+        p = Parameter(name=f"perm_region_{slug(well)}", kind="multiply",
                       keywords=("PERMX", "PERMY"), box=box, low=PERM_BOUNDS[0],
                       high=PERM_BOUNDS[1],
                       description=f"PERMX and PERMY multiplier around {well}")
@@ -236,7 +142,7 @@ def shifted_regions(info: DeckInfo, well: str, taken: list[tuple[int, ...]] = ()
             continue
         seen.add(box)
         where = f"i{box[0]}-{box[1]}:j{box[2]}-{box[3]}"
-        p = Parameter(name=f"perm_region_{_slug(well)}_{where.replace(':', '_').replace('-', '_')}",
+        p = Parameter(name=f"perm_region_{slug(well)}_{where.replace(':', '_').replace('-', '_')}",
                       kind="multiply", keywords=("PERMX", "PERMY"), box=box,
                       low=PERM_BOUNDS[0], high=PERM_BOUNDS[1],
                       description=f"PERMX and PERMY multiplier of cells i {box[0]}-{box[1]}, "
@@ -466,7 +372,7 @@ def dated_productivity(info: DeckInfo, well: str, day: float) -> Candidate:
     """The candidate "``well``'s productivity index changed from report day ``day`` on": a
     ``WPIMULT`` factor (neutral 1) written in the schedule at that step."""
     date = (info.start + timedelta(days=day)).date().isoformat()
-    p = Parameter(name=f"pi_{_slug(well)}_from{day:g}".replace(".", "_"), kind="wpimult",
+    p = Parameter(name=f"pi_{slug(well)}_from{day:g}".replace(".", "_"), kind="wpimult",
                   wells=(well,), low=PI_BOUNDS[0], high=PI_BOUNDS[1], start_day=day,
                   description=f"productivity multiplier of {well} from day {day:g}")
     return Candidate(f"productivity_change:{well}@{day:g}", "productivity_change", p, (well,), (),
@@ -505,13 +411,3 @@ def build_candidates(info: DeckInfo, space: ParameterSpace, values: dict[str, fl
         out.extend(FAMILIES[kind](info, space, values))
     taken = set(space.names)
     return [c for c in out if c.name not in taken]
-
-
-def extended_space(space: ParameterSpace, candidates: list[Candidate]) -> ParameterSpace:
-    """``space`` followed by the candidates' parameters (after the globals, so a well's own
-    skin overrides a global skin)."""
-    return ParameterSpace(parameters=tuple(space.parameters) + tuple(c.parameter for c in candidates))
-
-
-def _slug(name: str) -> str:
-    return "".join(ch if ch.isalnum() else "_" for ch in name)

@@ -35,7 +35,7 @@ from hmcore.diagnosis import answer, decision
 from hmcore.diagnosis.budget import budget_problem
 from hmcore.diagnosis.confirmation import heldout_confirms, heldout_noise_line
 from hmcore.diagnosis.evidence import Fit
-from hmcore.diagnosis.extensions import extended_space
+from hmcore.diagnosis.candidate import extended_space
 from hmcore.diagnosis.runs import heldout_per_well
 from hmcore.diagnosis.workflow import Diagnosis
 

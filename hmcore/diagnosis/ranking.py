@@ -18,8 +18,8 @@ import numpy as np
 
 from hmcore.diagnosis import dating, screening
 from hmcore.diagnosis.attribution import projector_basis
-from hmcore.diagnosis.extensions import (Candidate, build_candidates, dated_productivity,
-                                         extended_space, shifted_regions)
+from hmcore.diagnosis.candidate import Candidate, extended_space
+from hmcore.diagnosis.extensions import build_candidates, dated_productivity, shifted_regions
 from hmcore.diagnosis.state import Calibrated, Context, Ranking
 from hmcore.ordering import natural_key
 

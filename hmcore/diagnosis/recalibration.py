@@ -18,7 +18,7 @@ import numpy as np
 
 from hmcore.diagnosis import refit, restart, screening
 from hmcore.diagnosis.confirmation import fit_line, record
-from hmcore.diagnosis.extensions import extended_space
+from hmcore.diagnosis.candidate import extended_space
 from hmcore.diagnosis.recalibrate import Coordinates, LevenbergMarquardt, Point, run_lockstep
 from hmcore.diagnosis.runs import Run, run_scores
 from hmcore.diagnosis.state import Calibrated, Context, Extension, Ranking, Recalibration

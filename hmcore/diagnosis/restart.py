@@ -35,7 +35,8 @@ import numpy as np
 
 from hmcore.diagnosis import refit
 from hmcore.diagnosis.confirmation import heldout_confirms
-from hmcore.diagnosis.extensions import base_values, current_skin
+from hmcore.diagnosis.candidate import current_skin
+from hmcore.model.deck_values import base_values
 from hmcore.diagnosis.recalibrate import Coordinates, LevenbergMarquardt, Point, run_lockstep
 from hmcore.diagnosis.runs import run_scores
 from hmcore.diagnosis.state import Calibrated, Context, Ranking

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from hmcore.diagnosis.attribution import Score, projector_basis, score_test
-from hmcore.diagnosis.extensions import Candidate
+from hmcore.diagnosis.candidate import Candidate
 from hmcore.diagnosis.recalibrate import Coordinates
 from hmcore.diagnosis.settings import DiagnosisSettings
 

@@ -12,7 +12,7 @@ import difflib
 from dataclasses import dataclass, field
 from typing import Iterable
 
-from hmcore.diagnosis.extensions import DEFAULT_KINDS, KINDS
+from hmcore.diagnosis.candidate import DEFAULT_KINDS, KINDS
 from hmcore.diagnosis.recalibrate import LMSettings
 from hmcore.errors import Problem
 
@@ -165,7 +165,7 @@ class DiagnosisSettings:
     open_end: float = 0.01
     """The verdict warns that a selected cause stopped within this distance (scaled) of an end
     of its range that is not a physical limit of its family: it may stand in for something it
-    does not describe (:func:`hmcore.diagnosis.extensions.open_end`; negative: never). A
+    does not describe (:func:`hmcore.diagnosis.candidate.open_end`; negative: never). A
     warning, not a veto: a veto was tried and gave worse models."""
     restart_top: int = 2
     """Recalibrated candidates restarted (count, best fits first), and with them every other

@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from hmcore.diagnosis.extensions import Candidate
+from hmcore.diagnosis.candidate import Candidate
 from hmcore.diagnosis.attribution import Score
 from hmcore.diagnosis.recalibrate import Coordinates
 from hmcore.diagnosis.runs import Run, Simulations

@@ -41,7 +41,7 @@ from typing import Any, Callable
 
 from hmcore.diagnosis import answer, calibration, decision, ranking, recalibration
 from hmcore.diagnosis.budget import budget_problem, count_tests, minimum_runs
-from hmcore.diagnosis.extensions import Candidate
+from hmcore.diagnosis.candidate import Candidate
 from hmcore.diagnosis.recalibrate import Coordinates
 from hmcore.diagnosis.report import write_report
 from hmcore.diagnosis.residuals import analyse_residuals

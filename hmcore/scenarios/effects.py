@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hmcore.diagnosis.extensions import KINDS, Candidate, build_candidates
+from hmcore.diagnosis.candidate import KINDS, Candidate
+from hmcore.diagnosis.extensions import build_candidates
 from hmcore.eclipse.deck_info import DeckInfo
 from hmcore.model.parameters import Parameter, ParameterSpace
 

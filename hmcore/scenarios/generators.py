@@ -71,17 +71,19 @@ from itertools import takewhile
 
 import numpy as np
 
-from hmcore.diagnosis.extensions import (
+from hmcore.diagnosis.candidate import (
     FAULT_BOUNDS,
     KINDS,
     PERM_BOUNDS,
     Candidate,
+    well_column,
+    wells_below,
+)
+from hmcore.diagnosis.extensions import (
     build_candidates,
     critical_room,
     dated_productivity,
     shifted_regions,
-    well_column,
-    wells_below,
 )
 from hmcore.eclipse.deck_info import DeckInfo
 from hmcore.model.deck_values import deck_blocks

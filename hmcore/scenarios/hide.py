@@ -20,7 +20,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from hmcore.diagnosis.extensions import KINDS
+from hmcore.diagnosis.candidate import KINDS
 from hmcore.eclipse.deck_info import DeckInfo
 from hmcore.model.deck_values import base_values
 from hmcore.model.parameters import ParameterSpace

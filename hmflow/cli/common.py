@@ -96,7 +96,7 @@ KINDS_HELP = ("Families of candidate extensions to search, comma-separated (defa
               "aquifer_strength, fault_transmissibility, relative_permeability, "
               "productivity_change, contact_depth, solution_gas")
 """Spelled out so that ``--help`` does not import the diagnosis; a test holds it to
-:data:`hmcore.diagnosis.extensions.KINDS`, as ``GENERATORS_HELP`` to the generators."""
+:data:`hmcore.diagnosis.candidate.KINDS`, as ``GENERATORS_HELP`` to the generators."""
 GENERATORS_HELP = ("partial_fault, offcentre_region, relperm_endpoint, relperm_scaling, "
                    "two_kinds, contact, pvt, dated_productivity, late_productivity, "
                    "permeability_trend, completion_change")
