@@ -84,8 +84,7 @@ def tally(cases: list[Path]) -> Tally:
 
         def right(cid: str) -> bool:
             cause = causes.get(cid)
-            return cause is not None and any(
-                e.kind != "unexplained" and names(described(cause, doc), e) for e in effects)
+            return cause is not None and any(names(described(cause, doc), e) for e in effects)
 
         for cid, r in recal.items():
             line = r.get("fit_line", s["fit_threshold"])

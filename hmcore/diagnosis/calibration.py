@@ -33,7 +33,7 @@ from hmcore.scoring.observations import ObservationSet
 def calibrate(ctx: Context, calibrated: dict[str, float] | None = None,
               initial: dict[str, float] | None = None, result: Any = None) -> Calibrated:
     """Calibrate the case's parameters from ``initial`` (default: the base model as given,
-    :func:`hmcore.diagnosis.extensions.base_values`), or start from ``calibrated``: phase 1 is
+    :func:`hmcore.model.deck_values.base_values`), or start from ``calibrated``: phase 1 is
     then skipped, phase 2 still polishes it unless ``settings.polish_given`` is off.
 
     A budget that cannot cover :func:`hmcore.diagnosis.budget.minimum_runs` is refused

@@ -105,7 +105,10 @@ def _recompletion(m: Recompletion, day: float, info: DeckInfo, state: dict) -> s
                                  "recomplete a well the schedule has completed by then")])
     name = f"'{m.well}'"
     shut = [[name, *x[1:5], "'SHUT'", *x[6:]] for x in old]
-    new = [[name, *old[0][1:3], str(k), str(k), "'OPEN'", *old[0][6:]] for k in m.layers]
+    # the new layers' connection factor and kh (items 8 and 10) are the simulator's to compute:
+    # the old layer's would carry over otherwise (a deck that writes them, as exports do)
+    tail = ["1*" if n in (7, 9) else v for n, v in enumerate(old[0][6:], start=6)]
+    new = [[name, *old[0][1:3], str(k), str(k), "'OPEN'", *tail] for k in m.layers]
     opened = Block("COMPDAT", ["COMPDAT\n", *map(format_compdat_record, new), "/\n"])
     active = [p for p in state["pimults"] if p.start_day is None or p in state["dated"]]
     own = [PiMultiplier((m.well,), m.factor)] if m.factor != 1.0 else []

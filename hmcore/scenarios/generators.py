@@ -372,7 +372,8 @@ def _permeability_trend(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Can
                               f"{angle:.0f} degrees from +i (towards +j)")
     factors = trend_factors(info.dims, angle, value)
     at = ", ".join(f"{w} x{factors[well_column(info, w)]:.2f}"
-                   for w in sorted(info.producers, key=natural_key))
+                   for w in sorted(info.producers, key=natural_key)
+                   if info.wells[w].connections)  # a producer never completed: no column
     return _of_no_family(info, "permeability_trend", p,
                          f"permeability_trend:{angle:.0f}deg:x{value:.3f}",
                          f"the permeability trends across the field, x{1 / value:.2f} at one "
@@ -405,7 +406,7 @@ def _completion_change(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Cand
     for well in sorted(info.producers, key=natural_key):
         conns = info.wells[well].connections
         ks = sorted({k for _, _, k in conns})
-        if len({(i, j) for i, j, _ in conns}) != 1:
+        if len({(i, j) for i, j, _ in conns}) != 1 or not oil.get(well):
             continue  # not a vertical well: its layers are no interval to move
         up = list(takewhile(lambda k: k in oil[well], range(ks[0] - 1, 0, -1)))[::-1]
         down = list(takewhile(lambda k: k in oil[well], range(ks[-1] + 1, nz + 1)))
@@ -439,18 +440,26 @@ def _completion_change(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Cand
     return c, 1.0
 
 
+DEPTH_TO_METRES = {"METRIC": 1.0, "PVT-M": 1.0, "FIELD": 0.3048, "LAB": 0.01}
+"""A deck's depth unit (EQUIL's contacts as written) in metres, OPM's unit of cell depths."""
+
+
 def _oil_layers(info: DeckInfo) -> dict[str, set[int]]:
     """Per producer, the layers of its column whose cell centre lies in the initial oil column:
     below the gas-oil contact and above the water-oil contact of the deck's EQUIL (items 5 and
     3; with several records, the deepest gas-oil and the shallowest water-oil contact; a
     defaulted one bounds nothing). The grid's cell depths are OPM's (the deck parsed again)."""
     records = deck_blocks(info).get("EQUIL") or []
-    contact = [[float(r[k]) for r in records if len(r) > k and r[k] != "1*"] for k in (4, 2)]
+    metres = DEPTH_TO_METRES.get(info.unit_system, 1.0)  # OPM's cell depths are in metres
+    contact = [[float(r[k]) * metres for r in records if len(r) > k and r[k] != "1*"]
+               for k in (4, 2)]
     goc = max(contact[0], default=-math.inf)
     woc = min(contact[1], default=math.inf)
     grid = DeckInfo.inspect_parsed(info.path)[1].state.grid()
     out = {}
     for well in info.producers:
+        if not info.wells[well].connections:
+            continue
         i, j, _ = info.wells[well].connections[0]
         out[well] = {k for k in range(1, info.dims[2] + 1)
                      if goc < grid.getCellDepth(i - 1, j - 1, k - 1) < woc}
