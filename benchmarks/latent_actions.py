@@ -15,9 +15,10 @@ section (the same prior: ``[ensemble]`` size and seed), with
 * **equal budget**: ES-MDA's simulations, ``size x (len(weights) + 1)`` (every member runs
   once per round and once more after the last update, which is its forecast), less the
   ``--draws`` that make the latent campaign's forecast (Laplace draws at the best call,
-  :mod:`tasks.posterior`); a CMA-ES or SAC campaign's best call also needs one
-  finite-difference run per coefficient for those draws, which the table counts: every run in
-  any journal of the campaign is a simulation;
+  :mod:`tasks.posterior`) and less one finite-difference run per coefficient, which those
+  draws need at the best call when the method left no Jacobian there (CMA-ES, SAC, and lm
+  when its best call stands on secant columns); the table counts every run in any journal of
+  the campaign, so a campaign that needed none comes out under ES-MDA's count;
 * the same judgement as ``reveal``'s: FOPT, FWPT, FGPT and each well's WOPT at the
   schedule's end against the forecast's P90-P10 (``inside_band``), and the RMSE to the truth
   of the mean field of the forecast's members (the posterior draws' fields; the best call's
@@ -54,7 +55,7 @@ from hmcore.fields.latent import LatentBasis  # noqa: E402
 from hmcore.fields.layout import Layout  # noqa: E402
 from hmcore.fields.members import ensemble_matrix  # noqa: E402
 from hmcore.fields.spread import field_spread  # noqa: E402
-from hmcore.model.latent_case import latent_case  # noqa: E402
+from hmcore.model.latent_case import latent_basis, latent_case  # noqa: E402
 from hmcore.scenarios.field_truth import TRUTH_JSON, hide_field_truth  # noqa: E402
 from hmcore.simulation.forecast import inside_band  # noqa: E402
 from storage import ArtifactStore, EvaluationJournal  # noqa: E402
@@ -169,7 +170,8 @@ def main() -> None:
     ap.add_argument("--share", type=float, default=0.9)
     ap.add_argument("--max-modes", type=int, default=None)
     ap.add_argument("--budget", type=int, default=None,
-                    help="calls per campaign (default: ES-MDA's simulations less --draws)")
+                    help="calls per campaign (default: ES-MDA's simulations less --draws and "
+                         "one run per mode)")
     ap.add_argument("--draws", type=int, default=20)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--max-minutes", type=float, default=None)
@@ -190,8 +192,10 @@ def main() -> None:
         hidden = json.loads((hidden_dir / TRUTH_JSON).read_text())
         case = latent_copy(hidden_dir / "case.toml", out / "cases" / f"t{s}-latent",
                            args.share, args.max_modes)
-        spec = load_case(case).ensemble
-        budget = args.budget or spec.size * (len(spec.weights) + 1) - args.draws
+        loaded = load_case(case)
+        spec = loaded.ensemble
+        modes = latent_basis(loaded, read_grid(loaded.deck)).k  # the Jacobian at the best call
+        budget = args.budget or spec.size * (len(spec.weights) + 1) - args.draws - modes
         for method in args.methods:
             for seed in args.seeds:
                 campaign = f"t{s}-latent-{method}-s{seed}"
