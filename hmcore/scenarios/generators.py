@@ -86,9 +86,10 @@ from hmcore.diagnosis.extensions import (
     shifted_regions,
 )
 from hmcore.eclipse.deck_info import DeckInfo
+from hmcore.errors import CaseError
 from hmcore.model.deck_values import deck_blocks
 from hmcore.model.parameters import Parameter, ParameterSpace
-from hmcore.model.run_deck import trend_factors
+from hmcore.model.run_deck import edits_for, render_deck, trend_factors
 from hmcore.ordering import natural_key
 from hmcore.scenarios.effects import HiddenEffect, draw_library_effect
 
@@ -420,15 +421,25 @@ def _completion_change(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Cand
     if not days:
         raise ValueError(f"the deck {info.path} has no report step in 30%-60% of its schedule "
                          "to recomplete a well at")
-    well, ks, sides = options[int(rng.integers(len(options)))]
-    side = sides[int(rng.integers(len(sides)))]
-    n = int(rng.integers(1, min(len(ks), len(side)) + 1))
-    layers = tuple(side[-n:] if side[0] < ks[0] else side[:n])  # next to the old ones
     day = float(days[int(rng.integers(len(days)))])
-    span = lambda x: f"{x[0]}-{x[-1]}" if len(x) > 1 else f"{x[0]}"  # noqa: E731
-    p = Parameter(name=f"hidden_recompletion_{well}".replace("-", "_"), kind="recomplete",
-                  wells=(well,), layers=layers, start_day=day, low=0.1, high=10.0,
-                  description=f"{well} recompleted in layer(s) {span(layers)} from day {day:g}")
+    for o in rng.permutation(len(options)):  # the first well the schedule lets be recompleted
+        well, ks, sides = options[int(o)]
+        side = sides[int(rng.integers(len(sides)))]
+        n = int(rng.integers(1, min(len(ks), len(side)) + 1))
+        layers = tuple(side[-n:] if side[0] < ks[0] else side[:n])  # next to the old ones
+        p = Parameter(name=f"hidden_recompletion_{well}".replace("-", "_"), kind="recomplete",
+                      wells=(well,), layers=layers, start_day=day, low=0.1, high=10.0,
+                      description=f"{well} recompleted in layer(s) {_span(layers)} from day "
+                                  f"{day:g}")
+        try:  # completed by the day, and no later COMPDAT of the well that would undo it
+            render_deck(info, edits_for(ParameterSpace(parameters=(p,)), {p.name: 1.0}, info))
+        except CaseError:
+            continue
+        break
+    else:
+        raise ValueError(f"the deck {info.path} has no producer its schedule lets be "
+                         f"recompleted at day {day:g}")
+    span = _span
     c = Candidate(f"completion_change:{well}:k{span(ks)}>k{span(layers)}@{day:g}",
                   "unexplained", p, (well,), layers,
                   f"well {well} was recompleted from day {day:g} on: its connections in "
@@ -442,6 +453,10 @@ def _completion_change(rng, info: DeckInfo, space: ParameterSpace) -> tuple[Cand
 
 DEPTH_TO_METRES = {"METRIC": 1.0, "PVT-M": 1.0, "FIELD": 0.3048, "LAB": 0.01}
 """A deck's depth unit (EQUIL's contacts as written) in metres, OPM's unit of cell depths."""
+
+
+def _span(layers) -> str:
+    return f"{layers[0]}-{layers[-1]}" if len(layers) > 1 else f"{layers[0]}"
 
 
 def _oil_layers(info: DeckInfo) -> dict[str, set[int]]:
