@@ -253,11 +253,13 @@ class NoiseSeries:
     position: np.ndarray | None = None
     run: np.ndarray | None = None
     weight: np.ndarray | None = None
+    chunk_rows: int | None = CHUNK_ROWS
+    """The longest stretch one line spans (None: a whole run)."""
 
     def chunks(self) -> list[np.ndarray]:
         """Row indices of the stretches a local line is fitted to: each run without its first
         row (right after a change, the steepest part of a transient: a reopening's drawdown,
-        a build-up's first day), cut into pieces of at most :data:`CHUNK_ROWS` rows (none
+        a build-up's first day), cut into pieces of at most ``chunk_rows`` rows (none
         shorter than :data:`MIN_CHUNK_ROWS`)."""
         n = len(self.values)
         run = np.zeros(n, int) if self.run is None else np.asarray(self.run)
@@ -267,7 +269,7 @@ class NoiseSeries:
             idx = np.arange(a + 1, b)
             idx = idx[np.isfinite(np.asarray(self.values, float)[idx])]
             if idx.size >= MIN_CHUNK_ROWS:
-                out += np.array_split(idx, math.ceil(idx.size / CHUNK_ROWS))
+                out += np.array_split(idx, math.ceil(idx.size / (self.chunk_rows or idx.size)))
         return out
 
 
