@@ -49,6 +49,7 @@ from hmcore.scenarios.field_truth import (  # noqa: E402
     truth_streams,
 )
 from hmcore.scenarios.hidden import noisy_history  # noqa: E402
+from hmflow.cli.flowrun import start_api  # noqa: E402
 from storage import ArtifactStore  # noqa: E402
 from storage.ensemble import FORECAST_STEP  # noqa: E402
 
@@ -140,7 +141,8 @@ def main() -> None:
     ap.add_argument("--max-minutes", type=float, default=None)
     args = ap.parse_args()
 
-    from flows.ensemble import ensemble_flow  # Prefect starts its API on import of the flow
+    start_api()  # hmflow's: a SIGTERM to this group stops the run; logs drained at exit
+    from flows.ensemble import ensemble_flow  # Prefect reads its API's URL on import
 
     started = time.time()
     out = args.out.resolve()

@@ -59,9 +59,9 @@ from hmcore.model.latent_case import latent_basis, latent_case  # noqa: E402
 from hmcore.scenarios.field_truth import TRUTH_JSON, hide_field_truth  # noqa: E402
 from hmcore.simulation.forecast import inside_band  # noqa: E402
 from storage import ArtifactStore, EvaluationJournal  # noqa: E402
+from hmflow.cli.flowrun import start_api  # noqa: E402
 from storage.ensemble import ENSEMBLE_FILE, ensemble_step  # noqa: E402
-from tasks.latent import BASIS_DOC, BASIS_FILE, LATENT_STEP  # noqa: E402
-from tasks.posterior import POSTERIOR_STEP, journal_name  # noqa: E402
+from storage.latent import BASIS_DOC, BASIS_FILE, LATENT_STEP  # noqa: E402
 
 
 def latent_copy(hidden_case: Path, dest: Path, share: float, max_modes: int | None) -> Path:
@@ -114,6 +114,8 @@ def judge(truth: int, method: str, seed: int, case: Path, hidden: dict, store: A
     best = store.latest(campaign, "report").read_json("report.json")["best"]
     best_record = EvaluationJournal(store, campaign).get(best["index"])
     members = [best_record]
+    from tasks.posterior import POSTERIOR_STEP, journal_name  # Prefect: after the API is set
+
     posterior = store.latest(campaign, POSTERIOR_STEP)
     if posterior is not None:
         draws = [r for r in EvaluationJournal(store, campaign, journal_name(posterior.version))
@@ -177,7 +179,8 @@ def main() -> None:
     ap.add_argument("--max-minutes", type=float, default=None)
     args = ap.parse_args()
 
-    from flows.campaign import campaign_flow  # Prefect starts its API on import of the flow
+    start_api()  # hmflow's: a SIGTERM to this group stops the run; logs drained at exit
+    from flows.campaign import campaign_flow  # Prefect reads its API's URL on import
 
     started = time.time()
     out = args.out.resolve()

@@ -30,11 +30,11 @@ from hmcore.cases import load_case
 from hmcore.model.fingerprint import deck_file_hashes
 from hmcore.scoring.evaluation import SCORING_VERSION
 from storage import ArtifactStore, EvaluationJournal, validate_name
+from storage.latent import BASIS_DOC
 from storage.lock import NameHeldError, NameKind, NameLock
 from tasks.case import prepare_deck, stored_case_differences
 from tasks.curves import collect_curves
 from tasks.latent import (
-    BASIS_DOC,
     latent_conflict,
     latent_settings,
     prepare_latent,

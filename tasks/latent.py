@@ -1,10 +1,7 @@
 """A campaign on a case with ``[latent]``: its fields moved by the coefficients of their prior's
 leading modes (:mod:`hmcore.fields.latent`, :mod:`hmcore.model.latent_case`).
 
-``<campaign>/latent-basis/vN``: ``basis.parquet`` (one row per field value, ``parameter`` and
-``cell`` as an ensemble's table labels them, ``mean`` and one column per mode, float64) and
-``basis.json`` (the modes kept, the share of the prior's variance they hold, the modes the
-prior had, the section, the prior's seeds, and the coefficients of the deck's own fields).
+``<campaign>/latent-basis/vN`` (:mod:`storage.latent`).
 Drawn once: a rerun with the same inputs reuses the stored version, whatever code made it, and
 the campaign's name is bound to its hash (:func:`latent_settings`). Every call of the
 campaign then runs with :class:`hmcore.fields.members.LatentSimulator` bound to its
@@ -35,10 +32,8 @@ from hmcore.model.latent_case import (
 from hmcore.scoring.evaluation import simulator_for
 from hmcore.model.fingerprint import case_fingerprint
 from storage import ArtifactStore, ArtifactVersion, code_version, sha256_json, to_jsonable
+from storage.latent import BASIS_DOC, BASIS_FILE, LATENT_STEP
 
-LATENT_STEP = "latent-basis"
-BASIS_FILE = "basis.parquet"
-BASIS_DOC = "basis.json"
 
 
 @dataclass(frozen=True, eq=False)

@@ -24,7 +24,7 @@ from hmcore.fields.transform import to_physical
 from hmcore.model.latent_case import deck_coefficients, latent_basis, latent_case
 from hmcore.scenarios.synthetic_fields import FIELDS
 from storage import ArtifactStore, EvaluationJournal
-from tasks.latent import BASIS_DOC, BASIS_FILE, LATENT_STEP
+from storage.latent import BASIS_DOC, BASIS_FILE, LATENT_STEP
 
 pytestmark = [pytest.mark.opm]
 BUDGET = 12
