@@ -14,6 +14,7 @@ from prefect.cache_policies import NO_CACHE
 from hmcore.calibration.loop import best_record
 from hmcore.calibration.objective import Objective
 from hmcore.diagnosis.report import markdown_report
+from hmcore.fields.members import INCLUDE_NAME
 from hmcore.model.case import default_history_end
 from hmcore.reporting.benchmark import case_truth
 from hmcore.reporting.html import ReportInputs, render
@@ -67,7 +68,8 @@ def consolidate(store_root: str, campaign: str, parameter_names: list[str],
 @task(name="archive-best-case", cache_policy=NO_CACHE)
 def archive_best(store_root: str, campaign: str, results: ArtifactVersion) -> ArtifactVersion | None:
     """Copy the best valid run by the campaign's objective (deck, summary files, parameters,
-    metrics) into ``best/vN``."""
+    metrics; a latent campaign's fields, :data:`~hmcore.fields.members.INCLUDE_NAME`, included
+    by the copied deck from beside it) into ``best/vN``."""
     store = ArtifactStore(store_root)
     doc = results.read_json("records.json")
     records = doc["records"]
@@ -78,9 +80,15 @@ def archive_best(store_root: str, campaign: str, results: ArtifactVersion) -> Ar
     run_dir = Path(best["run_dir"])
 
     def write(directory: Path) -> None:
+        fields = run_dir / INCLUDE_NAME  # a latent or member run's fields, included by the deck
         for f in sorted(run_dir.iterdir()):
-            if f.is_file() and (f.suffix.upper() in SUMMARY_SUFFIXES or f.name == "simulator.log"):
+            if f.is_file() and (f.suffix.upper() in SUMMARY_SUFFIXES or f.name == "simulator.log"
+                                or f == fields):
                 shutil.copy2(f, directory / f.name)
+        for deck in directory.glob("*.DATA"):  # the archive's own copy, not the run dir's
+            if fields.is_file():
+                deck.write_text(deck.read_text(errors="replace").replace(
+                    f"'{fields.resolve()}'", f"'{INCLUDE_NAME}'"))
         (directory / "params.json").write_text(json.dumps(best["params"], indent=2))
         kept = {k: v for k, v in best.items() if k != "simulated"}
         (directory / "metrics.json").write_text(json.dumps(to_jsonable(

@@ -87,6 +87,14 @@ def test_every_call_runs_the_fields_its_coefficients_make(run):
                                    to_physical(x[grid.n_active:], permx), rtol=2e-6)
 
 
+def test_the_best_case_archive_holds_its_fields_beside_its_deck(run):
+    best = run["store"].latest("lat", "best")
+    assert INCLUDE_NAME in best.files
+    deck = next(f for f in best.files if f.endswith(".DATA"))
+    text = best.file(deck).read_text()
+    assert f"'{INCLUDE_NAME}'" in text and "/runs/" not in text  # not the run dir's
+
+
 def test_the_reference_as_given_runs_the_bases_image_of_the_deck(run):
     basis, doc = stored_basis(run["store"])
     loaded = load_case(run["case"])
