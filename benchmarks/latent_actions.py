@@ -62,6 +62,7 @@ from storage import ArtifactStore, EvaluationJournal  # noqa: E402
 from hmflow.cli.flowrun import start_api  # noqa: E402
 from storage.ensemble import ENSEMBLE_FILE, ensemble_step  # noqa: E402
 from storage.latent import BASIS_DOC, BASIS_FILE, LATENT_STEP  # noqa: E402
+from storage.posterior import POSTERIOR_STEP, journal_name  # noqa: E402
 
 
 def latent_copy(hidden_case: Path, dest: Path, share: float, max_modes: int | None) -> Path:
@@ -114,8 +115,6 @@ def judge(truth: int, method: str, seed: int, case: Path, hidden: dict, store: A
     best = store.latest(campaign, "report").read_json("report.json")["best"]
     best_record = EvaluationJournal(store, campaign).get(best["index"])
     members = [best_record]
-    from tasks.posterior import POSTERIOR_STEP, journal_name  # Prefect: after the API is set
-
     posterior = store.latest(campaign, POSTERIOR_STEP)
     if posterior is not None:
         draws = [r for r in EvaluationJournal(store, campaign, journal_name(posterior.version))

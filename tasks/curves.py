@@ -30,7 +30,7 @@ from hmcore.simulation.forecast import (
     forecast_table,
 )
 from storage import ArtifactStore, ArtifactVersion, EvaluationJournal, code_version
-from tasks.posterior import POSTERIOR_STEP, journal_name
+from storage.posterior import POSTERIOR_STEP, journal_name
 from tasks.reference import CENTRE, FLOOR
 
 

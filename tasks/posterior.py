@@ -30,9 +30,9 @@ from hmcore.calibration.posterior import laplace_draws
 from hmcore.model.case import Case
 from hmcore.reporting.identifiability import call_label, jacobian_journal, load_identifiability
 from storage import ArtifactStore, ArtifactVersion, code_version, to_jsonable
+from storage.posterior import POSTERIOR_STEP, journal_name
 from tasks.simulate import Destination
 
-POSTERIOR_STEP = "posterior"
 POSTERIOR_RUNS = "posterior-runs"
 JACOBIAN_RUNS = "jacobian-runs"
 PHASE = "posterior-draw"
@@ -51,11 +51,6 @@ class PosteriorPlan:
     @property
     def destination(self) -> Destination:
         return destination(self.version.version)
-
-
-def journal_name(version: int) -> str:
-    """The journal of the runs of the ``posterior`` artifact's version ``version``."""
-    return f"{POSTERIOR_STEP}-{version:04d}"
 
 
 def destination(version: int) -> Destination:

@@ -343,7 +343,7 @@ def test_the_forecast_is_made_of_runs_drawn_from_the_posterior_apart_from_the_bu
     simulates nothing."""
     from hmcore.cases import load_case
     from storage import ArtifactStore, EvaluationJournal
-    from tasks.posterior import journal_name
+    from storage.posterior import journal_name
 
     store = ArtifactStore(lm_campaign)
     ident = json.loads(store.latest(CAMPAIGN, "report").file("report.json").read_text())[
